@@ -1,0 +1,1 @@
+"""CL-FusionBEV: a camera + lidar BEV 3D detector in PyTorch."""

@@ -1,0 +1,1 @@
+"""Low-level tensor ops: voxelization, sparse convolution, box utilities."""

@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# Installs what the tests need (scripts/install.sh), then runs the default (fast) test suite.
+# Extra arguments go to pytest, e.g. `bash scripts/test.sh -m slow` for the long tests.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/install.sh
+export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
+exec .venv/bin/python -m pytest -q "$@"

@@ -1,0 +1,1 @@
+"""simgen: procedural urban scenes rendered into a nuScenes-format dataset."""

@@ -1,0 +1,191 @@
+"""Frozen configuration dataclasses, one per stage, and strict YAML preset loading.
+
+A preset is a YAML file in ``scenes/`` (or any path). Loading is strict: an unknown key, a
+wrong type or an out-of-range value raises :class:`ConfigError` with one line that names the
+file, the dotted field and the allowed range. Keys left out take the defaults below.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, get_args, get_origin, get_type_hints
+
+import yaml
+
+PRESET_DIR = Path(__file__).resolve().parent.parent / "scenes"
+
+
+class ConfigError(ValueError):
+    """Bad user input: the message is one line naming the file, field and allowed values."""
+
+
+def _rng(lo=None, hi=None, choices=None):
+    """Field metadata: the allowed range (inclusive) or the allowed choices."""
+    return {"lo": lo, "hi": hi, "choices": choices}
+
+
+@dataclass(frozen=True)
+class LayoutConfig:
+    """The road grid. Road centrelines are ``block_pitch`` apart in x and y."""
+    blocks_x: int = field(default=3, metadata=_rng(1, 12))
+    blocks_y: int = field(default=3, metadata=_rng(1, 12))
+    block_pitch: float = field(default=90.0, metadata=_rng(40.0, 300.0))
+    lanes_per_direction: int = field(default=2, metadata=_rng(1, 3))
+    lane_width: float = field(default=3.5, metadata=_rng(2.5, 4.5))
+    parking_width: float = field(default=2.5, metadata=_rng(2.0, 3.5))
+    sidewalk_width: float = field(default=5.0, metadata=_rng(3.0, 8.0))
+    building_height: tuple[float, float] = field(default=(6.0, 30.0), metadata=_rng(3.0, 200.0))
+    building_gap: tuple[float, float] = field(default=(1.0, 8.0), metadata=_rng(0.0, 50.0))
+    clutter_spacing: float = field(default=14.0, metadata=_rng(4.0, 100.0))
+
+
+@dataclass(frozen=True)
+class ActorsConfig:
+    """Actor densities. "per_km" counts are per km of road centreline."""
+    parked_fraction: float = field(default=0.55, metadata=_rng(0.0, 1.0))
+    vehicles_per_km: float = field(default=22.0, metadata=_rng(0.0, 200.0))
+    vehicle_mix: dict = field(default_factory=lambda: {
+        "car": 0.82, "truck": 0.07, "bus": 0.04, "motorcycle": 0.07})
+    pedestrians_per_km: float = field(default=70.0, metadata=_rng(0.0, 1000.0))
+    standing_fraction: float = field(default=0.3, metadata=_rng(0.0, 1.0))
+    crossing_fraction: float = field(default=0.25, metadata=_rng(0.0, 1.0))
+    bicycles_per_km: float = field(default=8.0, metadata=_rng(0.0, 200.0))
+    parked_bicycles_per_km: float = field(default=10.0, metadata=_rng(0.0, 200.0))
+    cones_per_km: float = field(default=8.0, metadata=_rng(0.0, 200.0))
+    barriers_per_km: float = field(default=6.0, metadata=_rng(0.0, 200.0))
+    stop_probability: float = field(default=0.2, metadata=_rng(0.0, 1.0))
+
+
+@dataclass(frozen=True)
+class EgoConfig:
+    """The ego's cruise speed is drawn from ``speed`` (m/s)."""
+    speed: tuple[float, float] = field(default=(4.0, 12.0), metadata=_rng(0.0, 15.0))
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Six cameras rendered with pyrender. Intrinsics are scaled to ``resolution``."""
+    resolution: tuple[int, int] = field(default=(1600, 900), metadata=_rng(16, 4096))
+    jpeg_quality: int = field(default=92, metadata=_rng(90, 100))
+    ambient: float = field(default=0.45, metadata=_rng(0.0, 2.0))
+    sun_intensity: float = field(default=3.0, metadata=_rng(0.0, 20.0))
+    zfar: float = field(default=400.0, metadata=_rng(50.0, 5000.0))
+
+
+@dataclass(frozen=True)
+class LidarConfig:
+    """HDL-32E: 32 rings from -30.67 to +10.67 deg, 20 Hz rotation."""
+    azimuth_step_deg: float = field(default=0.33, metadata=_rng(0.05, 2.0))
+    min_range: float = field(default=1.0, metadata=_rng(0.0, 5.0))
+    max_range: float = field(default=100.0, metadata=_rng(70.0, 100.0))
+    range_noise_sigma: float = field(default=0.02, metadata=_rng(0.0, 0.5))
+    # A return is detected when rho * cos(incidence) / R^2 >= min_return (1/m^2): a target of
+    # reflectivity 0.1 at normal incidence is seen to about 70 m.
+    min_return: float = field(default=2e-5, metadata=_rng(0.0, 1.0))
+    # Intensity 255 is reached by rho * cos / R^2 >= 1 / intensity_ref_range^2.
+    intensity_ref_range: float = field(default=6.0, metadata=_rng(0.5, 100.0))
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """Everything a preset sets. ``name`` and ``source`` record where it came from."""
+    description: str = ""
+    layout: LayoutConfig = field(default_factory=LayoutConfig)
+    actors: ActorsConfig = field(default_factory=ActorsConfig)
+    ego: EgoConfig = field(default_factory=EgoConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    name: str = field(default="custom", metadata={"internal": True})
+    source: str = field(default="", metadata={"internal": True})
+
+
+VEHICLE_CLASSES = ("car", "truck", "bus", "motorcycle")
+
+
+def _check_number(value, typ, meta, where):
+    if typ is bool or isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{where}: expected a number, got {value!r}")
+    if typ is int and not float(value).is_integer():
+        raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    lo, hi = meta.get("lo"), meta.get("hi")
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        raise ConfigError(f"{where}: {value!r} is out of range [{lo}, {hi}]")
+    return typ(value)
+
+
+def _build(cls, data: Any, where: str):
+    """Build dataclass ``cls`` from a YAML mapping, strictly."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
+    hints = get_type_hints(cls)
+    public = {f.name: f for f in fields(cls) if not f.metadata.get("internal")}
+    unknown = sorted(set(data) - set(public))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(public)})")
+    kwargs = {}
+    for name, value in data.items():
+        f, typ, sub = public[name], hints[name], f"{where}.{name}"
+        meta = dict(f.metadata)
+        if dataclasses.is_dataclass(typ):
+            kwargs[name] = _build(typ, value, sub)
+        elif get_origin(typ) is tuple:
+            n, et = len(get_args(typ)), get_args(typ)[0]
+            if not isinstance(value, (list, tuple)) or len(value) != n:
+                raise ConfigError(f"{sub}: expected a list of {n} numbers, got {value!r}")
+            kwargs[name] = tuple(_check_number(v, et, meta, sub) for v in value)
+            if n == 2 and name != "resolution" and kwargs[name][0] > kwargs[name][1]:
+                raise ConfigError(f"{sub}: [min, max] expected, got {value!r}")
+        elif typ is dict:
+            kwargs[name] = _check_mix(value, sub)
+        elif typ is str:
+            if not isinstance(value, str):
+                raise ConfigError(f"{sub}: expected a string, got {value!r}")
+            kwargs[name] = value
+        else:
+            kwargs[name] = _check_number(value, typ, meta, sub)
+    return cls(**kwargs)
+
+
+def _check_mix(value, where):
+    if not isinstance(value, dict) or not value:
+        raise ConfigError(f"{where}: expected a mapping of class -> weight")
+    for k, v in value.items():
+        if k not in VEHICLE_CLASSES:
+            raise ConfigError(f"{where}: unknown class {k!r} (allowed: {', '.join(VEHICLE_CLASSES)})")
+        _check_number(v, float, {"lo": 0.0, "hi": 1e6}, f"{where}.{k}")
+    if sum(value.values()) <= 0:
+        raise ConfigError(f"{where}: weights must not all be zero")
+    return {k: float(value[k]) for k in VEHICLE_CLASSES if k in value}
+
+
+def list_presets() -> dict[str, Path]:
+    """Preset name -> path, for the YAML files shipped in ``scenes/``."""
+    return {p.stem: p for p in sorted(PRESET_DIR.glob("*.yaml"))}
+
+
+def load_preset(name_or_path: str) -> SceneConfig:
+    """Load a preset by name (``urban``) or by path (``my.yaml``), strictly validated."""
+    presets = list_presets()
+    path = presets.get(name_or_path) or Path(name_or_path)
+    if not path.is_file():
+        raise ConfigError(f"preset {name_or_path!r}: no such preset or file "
+                          f"(presets: {', '.join(presets)})")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    cfg = _build(SceneConfig, data, str(path))
+    name = path.stem if name_or_path in presets else str(path)
+    return dataclasses.replace(cfg, name=name, source=path.read_text())
+
+
+def with_resolution(cfg: SceneConfig, width: int, height: int) -> SceneConfig:
+    """A copy of ``cfg`` with another camera resolution (validated like the preset field)."""
+    if not (16 <= width <= 4096 and 16 <= height <= 4096):
+        raise ConfigError(f"--resolution: {width}x{height} is out of range [16, 4096] per side")
+    return dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, resolution=(width, height)))

@@ -1,0 +1,278 @@
+"""Actor placement: the ego, moving and parked vehicles, cycles, pedestrians, cones and barriers.
+
+Every actor gets a straight path (origin, heading) and a desired speed; static actors get speed 0.
+Placement is rejection-sampled so that no two footprints overlap at the start; the motion model
+(:mod:`simgen.motion`) keeps it that way.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import assets
+from . import geometry as geo
+from .config import ActorsConfig, SceneConfig
+from .layout import CURB_HEIGHT, Grid
+from .world import Actor
+
+# Mean (l, w, h) per class from the nuScenes anchor configs; the spread is relative.
+SIZE_MEAN = {
+    "car": (4.61, 1.95, 1.72), "truck": (6.74, 2.46, 2.73), "bus": (11.19, 2.94, 3.47),
+    "motorcycle": (2.10, 0.76, 1.44), "bicycle": (1.69, 0.60, 1.27),
+    "pedestrian": (0.73, 0.66, 1.76), "traffic_cone": (0.40, 0.40, 1.06), "barrier": (0.49, 2.49, 0.98),
+}
+SIZE_SPREAD = {"car": 0.08, "truck": 0.15, "bus": 0.06, "motorcycle": 0.07, "bicycle": 0.06,
+               "pedestrian": 0.08, "traffic_cone": 0.12, "barrier": 0.1}
+EGO_SIZE = (4.08, 1.73, 1.56)   # the nuScenes ego, a Renault Zoe
+SPEED = {"car": (6.0, 14.0), "truck": (5.0, 11.0), "bus": (5.0, 10.0), "motorcycle": (6.0, 14.0),
+         "bicycle": (3.0, 7.0), "pedestrian": (0.5, 1.8)}
+PAINT = np.array([(200, 200, 205), (30, 30, 35), (150, 20, 25), (20, 50, 130), (120, 125, 130),
+                  (235, 235, 230), (40, 90, 60), (200, 160, 40), (90, 60, 40), (60, 140, 190)], float)
+CLOTHES = np.array([(40, 40, 60), (150, 30, 30), (30, 90, 150), (200, 200, 190), (60, 60, 60),
+                    (180, 140, 60), (20, 110, 70), (110, 60, 120), (230, 120, 40), (90, 80, 70)], float)
+N_SURFACE = 256  # surface samples per actor for the visibility measure
+
+
+@dataclass
+class Plan:
+    """An actor before simulation: its path, motion parameters and initial footprint."""
+    actor: Actor
+    origin: np.ndarray          # (2,) path start, global
+    heading: float              # path direction (rad); also the actor yaw
+    s0: float                   # initial arc length along the path
+    length: float               # path length
+    v_des: float                # desired speed (0 for static actors)
+    z_ground: float = 0.0       # ground height under a static actor
+    stop: tuple = ()            # (t_start, t_end) of a planned stop, or ()
+    priority: int = 0           # lower goes first when two actors wait for each other
+
+    def xy(self, s: float) -> np.ndarray:
+        return self.origin + s * np.array([np.cos(self.heading), np.sin(self.heading)])
+
+    def box(self) -> np.ndarray:
+        l, w, h = self.actor.size
+        return np.array([*self.xy(self.s0), 0.0, l, w, h, self.heading])
+
+
+@dataclass
+class Placer:
+    """Rejection sampling against the footprints already placed."""
+    static: np.ndarray
+    boxes: list = field(default_factory=list)
+    plans: list = field(default_factory=list)
+
+    def free(self, box: np.ndarray, margin: float) -> bool:
+        others = np.concatenate([self.static, np.array(self.boxes).reshape(-1, 7)])
+        if len(others) == 0:
+            return True
+        near = np.hypot(*(others[:, :2] - box[:2]).T) < (np.hypot(*box[3:5]) + np.hypot(others[:, 3], others[:, 4])) / 2 + 2 * margin
+        return not near.any() or not geo.bev_overlap(box[None], others[near], margin).any()
+
+    def add(self, plan: Plan, margin: float) -> bool:
+        box = plan.box()
+        if not self.free(box, margin):
+            return False
+        self.boxes.append(box)
+        self.plans.append(plan)
+        return True
+
+
+def draw_size(cls: str, rng: np.random.Generator) -> tuple[float, float, float]:
+    mean = np.array(SIZE_MEAN[cls])
+    f = np.clip(1.0 + SIZE_SPREAD[cls] * rng.standard_normal(3), 0.75, 1.3)
+    if cls == "pedestrian":   # keep a person's proportions: one scale for l and w
+        f[1] = f[0]
+    return tuple(float(v) for v in mean * f)
+
+
+def make_actor(idx: int, cls: str, rng: np.random.Generator, parked=False, rider=True) -> Actor:
+    """Builds the mesh and surface samples of one actor of class ``cls``."""
+    size = draw_size(cls, rng)
+    l, w, h = size
+    paint = PAINT[rng.integers(len(PAINT))] * rng.uniform(0.85, 1.1)
+    paint = tuple(np.clip(paint, 0, 255))
+    clothes = (tuple(CLOTHES[rng.integers(len(CLOTHES))]), tuple(CLOTHES[rng.integers(len(CLOTHES))]))
+    if cls == "car":
+        mesh = assets.car(l, w, h, paint)
+    elif cls == "truck":
+        mesh = assets.truck(l, w, h, paint)
+    elif cls == "bus":
+        mesh = assets.bus(l, w, h, paint)
+    elif cls == "motorcycle":
+        mesh = assets.motorcycle(l, w, h, paint, clothes if rider else None)
+    elif cls == "bicycle":
+        if rider:   # the box holds the rider: nuScenes annotates a ridden cycle with its rider
+            h = max(h, 1.55 + 0.1 * rng.standard_normal())
+            size = (l, w, h)
+        mesh = assets.bicycle(l, w, h, paint, clothes if rider else None)
+    elif cls == "pedestrian":
+        mesh = assets.pedestrian(l, w, h, *clothes).build()
+    elif cls == "traffic_cone":
+        mesh = assets.traffic_cone(l, w, h)
+    elif cls == "barrier":
+        mesh = assets.barrier(l, w, h)
+    else:
+        raise ValueError(cls)
+    surface = assets.surface_samples(mesh, N_SURFACE, seed=int(rng.integers(2**31)))
+    return Actor(idx, cls, size, mesh, surface, parked=parked, rider=rider)
+
+
+def _lane(grid: Grid, rng: np.random.Generator, lateral: float | None = None):
+    """A random lane: (origin (2,), heading, path length, lane lateral offset)."""
+    cfg = grid.cfg
+    W, H = grid.extent
+    horizontal = rng.random() < 0.5
+    centres = grid.ys if horizontal else grid.xs
+    c = centres[rng.integers(len(centres))]
+    forward = rng.random() < 0.5
+    if lateral is None:
+        lateral = (rng.integers(cfg.lanes_per_direction) + 0.5) * cfg.lane_width
+    # Right-hand traffic: the lane lies to the right of the direction of travel.
+    if horizontal:
+        heading = 0.0 if forward else np.pi
+        origin = np.array([0.0, c - lateral]) if forward else np.array([W, c + lateral])
+        length = W
+    else:
+        heading = np.pi / 2 if forward else -np.pi / 2
+        origin = np.array([c + lateral, 0.0]) if forward else np.array([c - lateral, H])
+        length = H
+    return origin, heading, length, lateral
+
+
+def _sidewalk_line(grid: Grid, rng: np.random.Generator, lateral: float):
+    """A line along a sidewalk at ``lateral`` from a road centreline (either side, either way)."""
+    origin, heading, length, _ = _lane(grid, rng, lateral=lateral)
+    return origin, heading, length
+
+
+def place_actors(cfg: SceneConfig, grid: Grid, static: np.ndarray, duration: float,
+                 rng: np.random.Generator) -> list[Plan]:
+    """All actors of a scene: the ego first (id 0), then everyone else."""
+    a: ActorsConfig = cfg.actors
+    lay = cfg.layout
+    hw, sw = grid.road_half_width, lay.sidewalk_width
+    W, H = grid.extent
+    km = grid.road_km
+    placer = Placer(static)
+    nid = [0]
+
+    def new(cls, **kw):
+        nid[0] += 1
+        return make_actor(nid[0], cls, rng, **kw)
+
+    # The ego: in a lane, starting near the world centre, annotate=False.
+    for _ in range(1000):
+        origin, heading, length, _ = _lane(grid, rng)
+        v = rng.uniform(*cfg.ego.speed)
+        centre = np.array([W, H]) / 2
+        d = np.array([np.cos(heading), np.sin(heading)])
+        s_mid = float(np.dot(centre - origin, d))
+        s0 = s_mid - v * duration / 2 + rng.uniform(-lay.block_pitch / 4, lay.block_pitch / 4)
+        ego_mesh = assets.car(*EGO_SIZE, (200, 200, 200))
+        ego = Actor(0, "car", EGO_SIZE, ego_mesh, np.zeros((0, 6)), annotate=False)
+        plan = Plan(ego, origin, heading, float(np.clip(s0, 10, length - 10)), length, v, priority=10**6)
+        if placer.add(plan, 0.5):
+            break
+
+    # Parked vehicles, cone groups and barrier rows in the parking strips, slot by slot.
+    slot = 6.5
+    spans_x, spans_y = grid.intervals(grid.xs, W), grid.intervals(grid.ys, H)
+    cone_p = a.cones_per_km / 4.0 / max(1e-6, 1000.0 / slot)      # a group holds about 4 cones
+    barrier_p = a.barriers_per_km / 3.0 / max(1e-6, 1000.0 / slot)
+    moto_p, truck_p = 0.06, 0.06
+    for horizontal, centres, spans in ((True, grid.ys, spans_x), (False, grid.xs, spans_y)):
+        for c in centres:
+            for side in (-1, 1):
+                lat = side * (hw - lay.parking_width / 2)
+                for u0, u1 in spans:
+                    for u in np.arange(u0 + sw + 1.0, u1 - sw - slot, slot):
+                        heading = (0.0 if side < 0 else np.pi) if horizontal else (np.pi / 2 if side > 0 else -np.pi / 2)
+                        pos = np.array([u + slot / 2, c + lat]) if horizontal else np.array([c + lat, u + slot / 2])
+                        r = rng.random()
+                        if r < cone_p:
+                            n = int(rng.integers(3, 6))
+                            d = np.array([np.cos(heading), np.sin(heading)])
+                            for k in range(n):
+                                plan = Plan(new("traffic_cone"), pos + (k - n / 2) * 1.3 * d, heading, 0.0, 0.0, 0.0)
+                                placer.add(plan, 0.1)
+                        elif r < cone_p + barrier_p:
+                            d = np.array([np.cos(heading), np.sin(heading)])
+                            for k in range(int(rng.integers(2, 4))):
+                                plan = Plan(new("barrier"), pos + (k - 1) * 2.6 * d, heading + np.pi / 2, 0.0, 0.0, 0.0)
+                                placer.add(plan, 0.05)
+                        elif r < cone_p + barrier_p + a.parked_fraction:
+                            q = rng.random()
+                            cls = "motorcycle" if q < moto_p else ("truck" if q < moto_p + truck_p else "car")
+                            jitter = rng.uniform(-0.4, 0.4)
+                            plan = Plan(new(cls, parked=True, rider=False), pos + jitter, heading, 0.0, 0.0, 0.0)
+                            placer.add(plan, 0.3)
+
+    # Moving vehicles in lanes, with an occasional planned stop.
+    mix = list(a.vehicle_mix)
+    weights = np.array([a.vehicle_mix[k] for k in mix])
+    for _ in range(int(round(a.vehicles_per_km * km))):
+        cls = mix[rng.choice(len(mix), p=weights / weights.sum())]
+        actor = new(cls, rider=True)
+        for _try in range(20):
+            origin, heading, length, _ = _lane(grid, rng)
+            stop = ()
+            if rng.random() < a.stop_probability:
+                t0 = rng.uniform(0, duration)
+                stop = (t0, t0 + rng.uniform(1.5, 4.0))
+            plan = Plan(actor, origin, heading, rng.uniform(5, length - 5), length,
+                        rng.uniform(*SPEED[cls]), stop=stop, priority=2000 + actor.id)
+            if placer.add(plan, 1.0):
+                break
+
+    # Moving bicycles near the right edge of the outer lane.
+    edge = lay.lanes_per_direction * lay.lane_width - 0.55
+    for _ in range(int(round(a.bicycles_per_km * km))):
+        actor = new("bicycle", rider=True)
+        for _try in range(20):
+            origin, heading, length, _ = _lane(grid, rng, lateral=edge)
+            plan = Plan(actor, origin, heading, rng.uniform(5, length - 5), length,
+                        rng.uniform(*SPEED["bicycle"]), priority=1000 + actor.id)
+            if placer.add(plan, 0.5):
+                break
+
+    # Parked bicycles along the building side of the sidewalks, across the walking direction.
+    for _ in range(int(round(a.parked_bicycles_per_km * km))):
+        actor = new("bicycle", parked=True, rider=False)
+        for _try in range(20):
+            origin, heading, length = _sidewalk_line(grid, rng, hw + sw - 1.0)
+            s = rng.uniform(5, length - 5)
+            plan = Plan(actor, origin + s * np.array([np.cos(heading), np.sin(heading)]),
+                        heading + np.pi / 2, 0.0, 0.0, 0.0, z_ground=CURB_HEIGHT)
+            if grid.ground_z(plan.xy(0.0)) > 0 and placer.add(plan, 0.1):
+                break
+
+    # Pedestrians: standing, walking along sidewalks, or walking towards a crosswalk.
+    walk_lo, walk_hi = hw + 1.3, hw + sw - 2.0
+    for _ in range(int(round(a.pedestrians_per_km * km))):
+        actor = new("pedestrian")
+        standing = rng.random() < a.standing_fraction
+        crossing = not standing and rng.random() < a.crossing_fraction
+        for _try in range(30):
+            origin, heading, length = _sidewalk_line(grid, rng, rng.uniform(walk_lo, walk_hi))
+            if crossing:   # start a few metres before the curb of a road this line crosses
+                along_x = abs(np.cos(heading)) > 0.5
+                crosses = grid.xs if along_x else grid.ys
+                o, sgn = (origin[0], np.sign(np.cos(heading))) if along_x else (origin[1], np.sign(np.sin(heading)))
+                s_cross = (crosses - o) * sgn
+                s_cross = s_cross[(s_cross > hw + 8) & (s_cross < length - hw - 8)]
+                if len(s_cross) == 0:
+                    continue
+                s = float(rng.choice(s_cross)) - hw - rng.uniform(0.5, 6.0)
+            else:
+                s = rng.uniform(5, length - 5)
+            v = 0.0 if standing else rng.uniform(*SPEED["pedestrian"])
+            yaw = rng.uniform(-np.pi, np.pi) if standing else heading
+            if standing:
+                plan = Plan(actor, origin + s * np.array([np.cos(heading), np.sin(heading)]), yaw, 0.0, 0.0, 0.0,
+                            z_ground=CURB_HEIGHT)
+            else:
+                plan = Plan(actor, origin, heading, s, length, v, priority=actor.id)
+            if grid.ground_z(plan.xy(plan.s0)) > 0 and placer.add(plan, 0.2):
+                break
+    return placer.plans

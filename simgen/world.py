@@ -1,0 +1,103 @@
+"""Data only: actors, their tracks, the world they live in, and a frame (poses at one time).
+
+All coordinates are in the scene's global frame (x east, y north, z up, metres), which is also
+the frame of the map PNG: pixel (row, col) = (H - y / 0.1, x / 0.1).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from . import geometry as geo
+
+# nuScenes category per simgen class, and the detection-class attribute family.
+CATEGORY = {
+    "car": "vehicle.car",
+    "truck": "vehicle.truck",
+    "bus": "vehicle.bus.rigid",
+    "motorcycle": "vehicle.motorcycle",
+    "bicycle": "vehicle.bicycle",
+    "pedestrian": "human.pedestrian.adult",
+    "traffic_cone": "movable_object.trafficcone",
+    "barrier": "movable_object.barrier",
+}
+CLASSES = tuple(CATEGORY)
+VEHICLES = ("car", "truck", "bus")
+# The ego frame's origin is the rear axle, this far behind the centre of the ego's box.
+EGO_CENTRE_AHEAD_OF_ORIGIN = 1.3
+CYCLES = ("motorcycle", "bicycle")
+
+
+@dataclass
+class Actor:
+    """One annotated (or, for the ego, unannotated) object.
+
+    ``mesh`` is in the box frame: origin at the box centre, x along the length (heading),
+    z up. Its faces carry ``face_colors`` and a per-face ``reflectivity`` (0..1, for the lidar)
+    in ``mesh.metadata["reflectivity"]``. ``surface`` is (k, 6) points + outward normals on the
+    mesh, box frame, used to measure visibility.
+    """
+    id: int
+    cls: str
+    size: tuple[float, float, float]  # l, w, h
+    mesh: trimesh.Trimesh
+    surface: np.ndarray
+    parked: bool = False       # a vehicle or cycle that will not move (attribute "parked"/"without_rider")
+    rider: bool = True         # cycles: has a rider
+    annotate: bool = True      # False for the ego
+
+
+@dataclass
+class World:
+    """A scene's world for its whole duration.
+
+    Tracks are sampled at ``times`` (seconds from the scene start, uniform step ``dt``):
+    ``xy`` (n, K, 2), ``z`` (n,) box-centre height, ``yaw`` (n,) (paths are straight),
+    ``speed`` (n, K). Actor 0 is the ego; its ``z`` is 0 (the ego_pose height).
+    """
+    extent: tuple[float, float]
+    static_mesh: trimesh.Trimesh
+    static_boxes: np.ndarray            # (s, 7) footprints of static clutter, for collision tests
+    actors: list[Actor]
+    times: np.ndarray                   # (K,)
+    xy: np.ndarray                      # (n, K, 2)
+    z: np.ndarray                       # (n, K)
+    yaw: np.ndarray                     # (n,)
+    speed: np.ndarray                   # (n, K)
+    drivable: np.ndarray                # (H, W) uint8 mask at 0.1 m/px, 255 = drivable
+    description: str = ""
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def dt(self) -> float:
+        return float(self.times[1] - self.times[0])
+
+    def boxes_at(self, t: float) -> np.ndarray:
+        """(n, 7) boxes (x, y, z, l, w, h, yaw) of all actors at time ``t`` (linear interpolation)."""
+        xy = _interp(self.times, self.xy, t)
+        z = _interp(self.times, self.z[..., None], t)[:, 0]
+        size = np.array([a.size for a in self.actors])
+        return np.concatenate([xy, z[:, None], size, self.yaw[:, None]], axis=1)
+
+    def speed_at(self, t: float) -> np.ndarray:
+        """(n,) speeds (m/s) at time ``t``."""
+        return _interp(self.times, self.speed[..., None], t)[:, 0]
+
+    def ego_pose(self, t) -> np.ndarray:
+        """T_global_from_ego at time(s) ``t``: (4, 4) for a scalar, (m, 4, 4) for an array."""
+        t_arr = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
+        x = np.interp(t_arr, self.times, self.xy[0, :, 0]) - EGO_CENTRE_AHEAD_OF_ORIGIN * c
+        y = np.interp(t_arr, self.times, self.xy[0, :, 1]) - EGO_CENTRE_AHEAD_OF_ORIGIN * s
+        T = geo.poses_2d(x, y, np.full_like(x, self.yaw[0]))
+        return T[0] if np.ndim(t) == 0 else T
+
+
+def _interp(times: np.ndarray, values: np.ndarray, t: float) -> np.ndarray:
+    """Linear interpolation of (n, K, c) samples at scalar time t -> (n, c)."""
+    k = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))
+    a = (t - times[k]) / (times[k + 1] - times[k])
+    a = float(np.clip(a, 0.0, 1.0))
+    return values[:, k] * (1.0 - a) + values[:, k + 1] * a
