@@ -76,7 +76,7 @@ def random_boxes(rng: np.random.Generator, n: int, spread: float = 3.0) -> np.nd
 
 def iou_case_pairs(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """>= 500 pairs covering rotated, nested, touching, identical, disjoint, axis-aligned
-    (collinear edges), same-centre and far-from-origin cases."""
+    (collinear edges), nearly parallel, same-centre and far-from-origin cases."""
     a_list, b_list = [], []
 
     def add(a: np.ndarray, b: np.ndarray) -> None:
@@ -128,6 +128,16 @@ def iou_case_pairs(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     b[:, 3:5] = np.round(b[:, 3:5], 1)
     a[:, 6] = rng.choice([0.0, math.pi / 2, math.pi], 60)
     b[:, 6] = rng.choice([0.0, math.pi / 2, -math.pi / 2], 60)
+    add(a, b)
+    # Half-metre grid, yaw in multiples of pi/4, some nudged by 1e-9: exactly and nearly
+    # parallel or collinear edges (an ill-conditioned line-line solve fails here).
+    a = random_boxes(rng, 200)
+    b = random_boxes(rng, 200)
+    for box in (a, b):
+        box[:, 0:2] = np.round(box[:, 0:2] * 2) / 2
+        box[:, 3:5] = np.round(box[:, 3:5] * 2) / 2 + 0.5
+        box[:, 6] = rng.integers(-4, 5, 200) * math.pi / 4
+        box[100:, 6] += rng.normal(0, 1e-9, 100)
     add(a, b)
     # Same centre, different yaw: up to 8-vertex intersections.
     a = random_boxes(rng, 40)

@@ -1,0 +1,217 @@
+"""The HDL-32E LIDAR_TOP: beam pattern, Embree ray casting, intensity, noise and per-point time.
+
+A sweep lasts one rotation (0.05 s at 20 Hz) and ends at its timestamp. The head turns clockwise
+seen from above and starts and ends facing backwards, so ray i fires at
+``t_end - 0.05 + frac_i * 0.05`` with ego azimuth ``pi - 2 pi frac_i``. Each ray leaves from where
+the sensor is at that instant (the ego moves during the sweep); the returns are then expressed in
+the sensor frame at ``t_end``, as nuScenes does. Actors are posed at ``t_end``.
+
+Intensity follows ``rho cos(incidence) / R^2``: returns below ``min_return`` are lost, and the
+value is scaled so that 255 is reached at ``intensity_ref_range`` for rho cos = 1.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from . import geometry as geo
+from .config import LidarConfig
+from .rig import T_ego_from_lidar
+from .world import World
+
+N_BEAMS = 32
+ELEVATIONS_DEG = np.linspace(-30.67, 10.67, N_BEAMS)   # 1.33 deg apart; ring 0 is the lowest
+SWEEP_PERIOD = 0.05
+
+
+@dataclass
+class Sweep:
+    """One lidar sweep after ray casting, before any degradation.
+
+    points_lidar : (n, 5) float32 x, y, z (sensor frame at the sweep end), intensity 0..255, ring.
+    time : (n,) float64 firing time (s, scene clock).  actor_id : (n,) int32, 0 = static world.
+    rho : (n,) surface reflectivity.  cos_inc : (n,) cosine of the incidence angle.
+    range : (n,) measured range (m).  dir_lidar : (n, 3) unit ray directions, sensor frame at t_end.
+    """
+    points_lidar: np.ndarray
+    time: np.ndarray
+    actor_id: np.ndarray
+    rho: np.ndarray
+    cos_inc: np.ndarray
+    range: np.ndarray
+    dir_lidar: np.ndarray
+
+
+def ray_pattern(cfg: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rays of one sweep: firing fraction (m,), ring (m,), unit direction in the ego frame (m, 3)."""
+    n_az = int(round(360.0 / cfg.azimuth_step_deg))
+    frac = (np.arange(n_az) + 0.5) / n_az
+    az = np.pi - 2.0 * np.pi * frac
+    el = np.deg2rad(ELEVATIONS_DEG)
+    AZ, EL = np.meshgrid(az, el, indexing="ij")            # (n_az, 32): column by column, in firing order
+    d = np.stack([np.cos(EL) * np.cos(AZ), np.cos(EL) * np.sin(AZ), np.sin(EL)], -1).reshape(-1, 3)
+    ring = np.tile(np.arange(N_BEAMS), n_az)
+    return np.repeat(frac, N_BEAMS), ring, d
+
+
+class RayTarget:
+    """A mesh ready for first-hit queries: the ray engine plus plain per-face arrays.
+
+    Embree through trimesh when embreex is present; trimesh's pure-Python engine otherwise (still
+    exact, only slower). Face data is copied out of trimesh once, because trimesh re-validates its
+    caches (by hashing the arrays) on every attribute access.
+    """
+
+    def __init__(self, mesh: trimesh.Trimesh, reflectivity: np.ndarray, engine: str = "auto"):
+        from trimesh.ray import has_embree
+        if engine == "embree" or (engine == "auto" and has_embree):
+            from trimesh.ray.ray_pyembree import RayMeshIntersector
+        else:
+            from trimesh.ray.ray_triangle import RayMeshIntersector
+        self.engine = RayMeshIntersector(mesh)
+        self.normals = np.array(mesh.face_normals)
+        self.v0 = np.array(mesh.vertices)[np.array(mesh.faces)[:, 0]]
+        self.reflectivity = np.asarray(reflectivity, np.float32)
+
+    def first_hits(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(m, 3) rays with unit directions -> (m,) hit distance (inf for a miss) and triangle (-1).
+
+        The distance is the exact ray-plane distance to the first triangle the engine reports.
+        """
+        dist = np.full(len(origins), np.inf)
+        tri = np.asarray(self.engine.intersects_first(origins, dirs), dtype=np.int64)
+        hit = np.nonzero(tri >= 0)[0]
+        if len(hit):
+            n = self.normals[tri[hit]]
+            dist[hit] = (np.einsum("md,md->m", self.v0[tri[hit]] - origins[hit], n)
+                         / np.einsum("md,md->m", dirs[hit], n))
+        return dist, tri
+
+
+class ActorMeshes:
+    """All actor meshes concatenated in their box frames, posed together with one vectorised step."""
+
+    def __init__(self, actors):
+        verts, faces, owner, refl, off = [], [], [], [], 0
+        for i, a in enumerate(actors):
+            verts.append(a.mesh.vertices)
+            faces.append(a.mesh.faces + off)
+            owner.append(np.full(len(a.mesh.vertices), i))
+            refl.append(a.mesh.metadata["reflectivity"])
+            off += len(a.mesh.vertices)
+        self.ids = np.array([a.id for a in actors], dtype=np.int32)
+        self.verts = np.concatenate(verts) if verts else np.zeros((0, 3))
+        self.faces = np.concatenate(faces) if faces else np.zeros((0, 3), np.int64)
+        self.vert_owner = np.concatenate(owner) if owner else np.zeros(0, np.int64)
+        self.face_owner = self.vert_owner[self.faces[:, 0]] if len(self.faces) else np.zeros(0, np.int64)
+        self.refl = np.concatenate(refl) if refl else np.zeros(0, np.float32)
+
+    def posed(self, poses: np.ndarray) -> trimesh.Trimesh:
+        """(k, 4, 4) T_global_from_box per actor -> one global mesh."""
+        P = poses[self.vert_owner]
+        v = np.einsum("nij,nj->ni", P[:, :3, :3], self.verts) + P[:, :3, 3]
+        return trimesh.Trimesh(v, self.faces, process=False)
+
+
+class LidarScanner:
+    """Ray-casts sweeps of one world.
+
+    The static world and the actors that never move share one BVH, built once. Each moving actor
+    has its own BVH in its box frame, also built once: per sweep, only the rays whose azimuth
+    comes near the actor are moved into its frame and cast, which is much cheaper than
+    rebuilding a BVH of all moving actors for every sweep.
+    """
+
+    def __init__(self, cfg: LidarConfig, world: World):
+        self.cfg, self.world = cfg, world
+        self.frac, self.ring, self.dir_ego = ray_pattern(cfg)
+        self.n_az = len(self.frac) // N_BEAMS
+        self.T_ego_from_lidar = T_ego_from_lidar()
+        moving = world.speed.max(axis=1) > 0
+        annotated = np.array([a.annotate for a in world.actors])
+        self.static_idx = np.nonzero(~moving & annotated)[0]
+        self.moving_idx = np.nonzero(moving & annotated)[0]
+        statics = ActorMeshes([world.actors[i] for i in self.static_idx])
+        sm = world.static_mesh
+        verts, faces = [sm.vertices], [sm.faces]
+        if len(self.static_idx):
+            posed = statics.posed(self._poses(self.static_idx, 0.0))
+            verts.append(posed.vertices)
+            faces.append(posed.faces + len(sm.vertices))
+        self.static = RayTarget(trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False),
+                                np.concatenate([sm.metadata["reflectivity"], statics.refl]))
+        self.static_ids = np.concatenate([np.zeros(len(sm.faces), np.int32), statics.ids[statics.face_owner]])
+        self._actor_rays = {}
+
+    def _poses(self, idx: np.ndarray, t: float) -> np.ndarray:
+        b = self.world.boxes_at(t)[idx]
+        return geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
+
+    def _actor_intersector(self, i: int):
+        if i not in self._actor_rays:
+            mesh = self.world.actors[i].mesh
+            self._actor_rays[i] = RayTarget(mesh, mesh.metadata["reflectivity"])
+        return self._actor_rays[i]
+
+    def _candidate_rays(self, box: np.ndarray, sensor_xy: np.ndarray, ego_yaw: float) -> np.ndarray:
+        """Indices of the rays whose azimuth passes within reach of ``box`` during the sweep."""
+        rel = box[:2] - sensor_xy
+        d = np.hypot(*rel)
+        r = np.hypot(box[3], box[4]) / 2 + 1.0     # + how far the sensor moves in one sweep
+        if d <= r:
+            return np.arange(len(self.frac))
+        half = np.arcsin(r / d)
+        centre = ((np.pi - (np.arctan2(rel[1], rel[0]) - ego_yaw)) / (2 * np.pi)) % 1.0
+        c0 = int(np.floor((centre - half / (2 * np.pi)) * self.n_az))
+        c1 = int(np.ceil((centre + half / (2 * np.pi)) * self.n_az))
+        cols = np.arange(c0, c1 + 1) % self.n_az
+        return (cols[:, None] * N_BEAMS + np.arange(N_BEAMS)).ravel()
+
+    def scan(self, t_end: float, rng: np.random.Generator) -> Sweep:
+        """Cast one sweep ending at ``t_end`` (s). ``rng`` draws the range noise."""
+        cfg = self.cfg
+        t_ray = t_end - SWEEP_PERIOD + self.frac * SWEEP_PERIOD
+        T_ge = self.world.ego_pose(t_ray)                                  # (m, 4, 4) T_global_from_ego
+        origin = T_ge[:, :3, :3] @ self.T_ego_from_lidar[:3, 3] + T_ge[:, :3, 3]
+        dirs = np.einsum("mij,mj->mi", T_ge[:, :3, :3], self.dir_ego)
+        dist, tri = self.static.first_hits(origin, dirs)
+        hit = tri >= 0
+        rho = np.zeros(len(dist), np.float32)
+        ids = np.zeros(len(dist), np.int32)
+        normals = np.zeros((len(dist), 3))
+        rho[hit] = self.static.reflectivity[tri[hit]]
+        ids[hit] = self.static_ids[tri[hit]]
+        normals[hit] = self.static.normals[tri[hit]]
+        T_end = self.world.ego_pose(t_end)
+        sensor_xy = (T_end @ self.T_ego_from_lidar)[:2, 3]
+        ego_yaw = float(np.arctan2(T_end[1, 0], T_end[0, 0]))
+        boxes = self.world.boxes_at(t_end)
+        for i in self.moving_idx:
+            b = boxes[i]
+            if np.hypot(*(b[:2] - sensor_xy)) > cfg.max_range + np.hypot(b[3], b[4]):
+                continue
+            rays = self._candidate_rays(b, sensor_xy, ego_yaw)
+            T_box = geo.pose_2d(b[0], b[1], b[6], b[2])
+            R, t = T_box[:3, :3], T_box[:3, 3]
+            target = self._actor_intersector(i)
+            d_i, tri_i = target.first_hits((origin[rays] - t) @ R, dirs[rays] @ R)
+            closer = d_i < dist[rays]
+            sel, tri_i = rays[closer], tri_i[closer]
+            dist[sel] = d_i[closer]
+            rho[sel] = target.reflectivity[tri_i]
+            ids[sel] = self.world.actors[i].id
+            normals[sel] = target.normals[tri_i] @ R.T
+        cos_inc = np.abs(np.einsum("md,md->m", normals, dirs))
+        meas = dist + cfg.range_noise_sigma * rng.standard_normal(len(dist))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            power = rho * cos_inc / meas ** 2
+        keep = np.isfinite(dist) & (meas >= cfg.min_range) & (meas <= cfg.max_range) & (power >= cfg.min_return)
+        p_global = origin[keep] + dirs[keep] * meas[keep, None]
+        T_lidar_from_global = geo.invert(T_end @ self.T_ego_from_lidar)
+        p_lidar = geo.apply(T_lidar_from_global, p_global)
+        intensity = np.round(255.0 * np.clip(power[keep] * cfg.intensity_ref_range ** 2, 0.0, 1.0))
+        pts = np.concatenate([p_lidar, intensity[:, None], self.ring[keep, None]], 1).astype(np.float32)
+        dir_lidar = dirs[keep] @ T_lidar_from_global[:3, :3].T
+        return Sweep(pts, t_ray[keep], ids[keep], rho[keep], cos_inc[keep], meas[keep], dir_lidar)
