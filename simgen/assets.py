@@ -12,42 +12,79 @@ import trimesh
 SECTIONS = 12  # cylinder/cone facets: enough to read as round, few enough to ray-cast fast
 
 
+_TEMPLATES: dict = {}
+
+
+def _template(kind: str, sections: int = SECTIONS, subdivisions: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Unit primitives (vertices, faces), made once by trimesh: building a trimesh object per
+    part is what made worlds slow, so parts are plain arrays scaled from these."""
+    key = (kind, sections, subdivisions)
+    if key not in _TEMPLATES:
+        if kind == "box":
+            m = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+        elif kind == "cylinder":      # radius 1, from z = -0.5 to 0.5
+            m = trimesh.creation.cylinder(radius=1.0, height=1.0, sections=sections)
+        else:
+            m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+        _TEMPLATES[key] = (np.array(m.vertices), np.array(m.faces))
+    return _TEMPLATES[key]
+
+
+def _rotation_z_to(direction: np.ndarray) -> np.ndarray:
+    """A rotation taking +z to the unit vector ``direction``."""
+    z = direction / np.linalg.norm(direction)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], 1)
+
+
 class Parts:
-    """Accumulates coloured parts and concatenates them into one mesh."""
+    """Accumulates coloured parts (plain vertex/face arrays) and concatenates them into one mesh."""
 
     def __init__(self):
-        self.meshes, self.colors, self.refl = [], [], []
+        self.verts, self.faces, self.colors, self.refl = [], [], [], []
+
+    def add_arrays(self, verts: np.ndarray, faces: np.ndarray, color, reflectivity: float):
+        self.verts.append(np.asarray(verts, np.float64))
+        self.faces.append(np.asarray(faces, np.int64))
+        self.colors.append(np.broadcast_to(np.append(np.asarray(color, np.uint8)[:3], 255), (len(faces), 4)))
+        self.refl.append(np.full(len(faces), reflectivity, np.float32))
 
     def add(self, mesh: trimesh.Trimesh, color, reflectivity: float):
-        self.meshes.append(mesh)
-        self.colors.append(np.broadcast_to(np.append(np.asarray(color, np.uint8)[:3], 255),
-                                           (len(mesh.faces), 4)))
-        self.refl.append(np.full(len(mesh.faces), reflectivity, np.float32))
+        self.add_arrays(mesh.vertices, mesh.faces, color, reflectivity)
 
     def box(self, extents, center, color, refl, yaw=0.0):
-        m = trimesh.creation.box(extents=extents)
+        v, f = _template("box")
+        v = v * np.asarray(extents, float)
         if yaw:
-            m.apply_transform(trimesh.transformations.rotation_matrix(yaw, (0, 0, 1)))
-        m.apply_translation(center)
-        self.add(m, color, refl)
+            c, s = np.cos(yaw), np.sin(yaw)
+            v = v @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1.0]])
+        self.add_arrays(v + np.asarray(center, float), f, color, refl)
 
     def cylinder(self, p0, p1, radius, color, refl, sections=SECTIONS):
-        m = trimesh.creation.cylinder(radius=radius, segment=np.array([p0, p1], float),
-                                      sections=sections)
-        self.add(m, color, refl)
+        p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+        v, f = _template("cylinder", sections)
+        v = v * np.array([radius, radius, np.linalg.norm(p1 - p0)])
+        self.add_arrays(v @ _rotation_z_to(p1 - p0).T + (p0 + p1) / 2, f, color, refl)
 
     def sphere(self, center, radius, color, refl, subdivisions=1):
-        m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-        m.apply_translation(center)
-        self.add(m, color, refl)
+        v, f = _template("sphere", subdivisions=subdivisions)
+        self.add_arrays(v * radius + np.asarray(center, float), f, color, refl)
+
+    def translate(self, offset):
+        self.verts = [v + np.asarray(offset, float) for v in self.verts]
+
+    def extend(self, other: "Parts"):
+        self.verts += other.verts
+        self.faces += other.faces
+        self.colors += other.colors
+        self.refl += other.refl
 
     def build(self) -> trimesh.Trimesh:
-        verts, faces, off = [], [], 0
-        for m in self.meshes:
-            verts.append(m.vertices)
-            faces.append(m.faces + off)
-            off += len(m.vertices)
-        mesh = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
+        offsets = np.cumsum([0] + [len(v) for v in self.verts[:-1]])
+        faces = np.concatenate([f + o for f, o in zip(self.faces, offsets)])
+        mesh = trimesh.Trimesh(np.concatenate(self.verts), faces, process=False)
         mesh.visual.face_colors = np.concatenate(self.colors)
         mesh.metadata["reflectivity"] = np.concatenate(self.refl)
         return mesh
@@ -119,9 +156,9 @@ def bus(l, w, h, color) -> trimesh.Trimesh:
     return p.build()
 
 
-def pedestrian(l, w, h, shirt, trousers, skin=(200, 160, 130), seated=False, base=None) -> Parts:
-    """Legs, torso, arms and head scaled to height ``h`` (returns Parts to allow riders)."""
-    p = base or Parts()
+def pedestrian(l, w, h, shirt, trousers, skin=(200, 160, 130), seated=False) -> Parts:
+    """Legs, torso, arms and head scaled to height ``h`` (returns Parts, so riders can be seated)."""
+    p = Parts()
     bottom = -h / 2
     head_r = 0.11 * h / 1.75
     leg_h = 0.0 if seated else 0.47 * h
@@ -165,14 +202,9 @@ def bicycle(l, w, h, color, rider_colors=None) -> trimesh.Trimesh:
     if rider_colors is not None:
         top = h / 2
         body_h = top - seat[2]
-        rider = Parts()
-        pedestrian(0.3, min(w, 0.5), body_h, *rider_colors, seated=True, base=rider)
-        for m in rider.meshes:
-            m.apply_translation((-0.1 * l, 0, seat[2] + body_h / 2))
-        for m, c, rf in zip(rider.meshes, rider.colors, rider.refl):
-            p.meshes.append(m)
-            p.colors.append(c)
-            p.refl.append(rf)
+        rider = pedestrian(0.3, min(w, 0.5), body_h, *rider_colors, seated=True)
+        rider.translate((-0.1 * l, 0, seat[2] + body_h / 2))
+        p.extend(rider)
         for side in (-1, 1):  # legs down to the pedals
             p.cylinder((-0.1 * l, side * 0.1, seat[2] + 0.02), (0.05 * l, side * 0.1, bottom + r + 0.1),
                        0.06, rider_colors[1], 0.2, sections=6)
@@ -191,14 +223,10 @@ def motorcycle(l, w, h, color, rider_colors=None) -> trimesh.Trimesh:
     p.box((0.7, min(w, 0.35), 0.2), (0.1, 0, bottom + r + 0.42), color, paint_reflectivity(color))
     seat_z = bottom + r + 0.55
     if rider_colors is not None and h / 2 - seat_z > 0.4:
-        rider = Parts()
         body_h = h / 2 - seat_z
-        pedestrian(0.3, min(w, 0.6), body_h, *rider_colors, seated=True, base=rider)
-        for m in rider.meshes:
-            m.apply_translation((-0.15, 0, seat_z + body_h / 2))
-        p.meshes += rider.meshes
-        p.colors += rider.colors
-        p.refl += rider.refl
+        rider = pedestrian(0.3, min(w, 0.6), body_h, *rider_colors, seated=True)
+        rider.translate((-0.15, 0, seat_z + body_h / 2))
+        p.extend(rider)
     return p.build()
 
 

@@ -154,11 +154,18 @@ def bev_overlap(a: np.ndarray, b: np.ndarray, margin: float = 0.0) -> np.ndarray
 
 
 def near_pairs(a: np.ndarray, b: np.ndarray, pad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Index pairs (i, j) whose bounding circles (plus ``pad``) meet: a cheap pre-filter."""
+    """Index pairs (i, j) whose BEV bounding circles (plus ``pad``) meet: a cheap pre-filter."""
+    from scipy.spatial import cKDTree
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     ra = np.hypot(a[:, 3], a[:, 4]) / 2
     rb = np.hypot(b[:, 3], b[:, 4]) / 2
-    d = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
-    return np.nonzero(d <= ra[:, None] + rb[None, :] + pad)
+    reach = ra.max() + rb.max() + pad
+    m = cKDTree(a[:, :2]).sparse_distance_matrix(cKDTree(b[:, :2]), reach, output_type="ndarray")
+    i, j, d = m["i"].astype(np.int64), m["j"].astype(np.int64), m["v"]
+    keep = d <= ra[i] + rb[j] + pad
+    order = np.lexsort((j[keep], i[keep]))
+    return i[keep][order], j[keep][order]
 
 
 def points_in_box_mask(points: np.ndarray, box) -> np.ndarray:

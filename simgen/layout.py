@@ -18,7 +18,10 @@ from .config import LayoutConfig
 
 CURB_HEIGHT = 0.15
 MAP_RESOLUTION = 0.1   # metres per map pixel
-MARGIN = 32.0          # world edge to the first road centreline
+MARGIN = 32.0          # city edge to the first road centreline
+# The city starts this far from the global origin, and the map extends this far beyond it on
+# every side: consumers crop the map around the ego (the devkit crops 57 m for its 40 m views).
+MAP_PAD = 100.0
 
 ASPHALT = (62, 62, 64)
 SIDEWALK = (168, 166, 160)
@@ -38,22 +41,24 @@ class Grid:
     @property
     def xs(self) -> np.ndarray:
         """x of the vertical roads' centrelines."""
-        return MARGIN + self.cfg.block_pitch * np.arange(self.cfg.blocks_x + 1)
+        return MAP_PAD + MARGIN + self.cfg.block_pitch * np.arange(self.cfg.blocks_x + 1)
 
     @property
     def ys(self) -> np.ndarray:
         """y of the horizontal roads' centrelines."""
-        return MARGIN + self.cfg.block_pitch * np.arange(self.cfg.blocks_y + 1)
+        return MAP_PAD + MARGIN + self.cfg.block_pitch * np.arange(self.cfg.blocks_y + 1)
 
     @property
     def extent(self) -> tuple[float, float]:
+        """Size of the city (m); it spans [MAP_PAD, MAP_PAD + size] on each axis."""
         return (2 * MARGIN + self.cfg.block_pitch * self.cfg.blocks_x,
                 2 * MARGIN + self.cfg.block_pitch * self.cfg.blocks_y)
 
     def intervals(self, centres: np.ndarray, length: float) -> np.ndarray:
-        """(k, 2) spans between roads along one axis (including the world margins)."""
+        """(k, 2) spans between roads along one axis (including the city margins)."""
         hw = self.road_half_width
-        edges = np.concatenate([[0.0], np.repeat(centres, 2) + np.tile([-hw, hw], len(centres)), [length]])
+        edges = np.concatenate([[MAP_PAD], np.repeat(centres, 2) + np.tile([-hw, hw], len(centres)),
+                                [MAP_PAD + length]])
         return edges.reshape(-1, 2)
 
     @property
@@ -79,14 +84,16 @@ class Grid:
 def drivable_mask(grid: Grid) -> np.ndarray:
     """(H, W) uint8 map at MAP_RESOLUTION, 255 = road; row 0 is the world's top edge (max y)."""
     W, H = grid.extent
-    nx, ny = int(round(W / MAP_RESOLUTION)), int(round(H / MAP_RESOLUTION))
+    nx, ny = int(round((W + 2 * MAP_PAD) / MAP_RESOLUTION)), int(round((H + 2 * MAP_PAD) / MAP_RESOLUTION))
     mask = np.zeros((ny, nx), np.uint8)
     hw = grid.road_half_width
+    px = lambda v: int(round(v / MAP_RESOLUTION))  # noqa: E731
+    c0, c1 = px(MAP_PAD), px(MAP_PAD + W)              # the city's columns
+    r0, r1 = ny - px(MAP_PAD + H), ny - px(MAP_PAD)    # and rows (row = ny - y / resolution)
     for x in grid.xs:
-        mask[:, int((x - hw) / MAP_RESOLUTION):int(np.ceil((x + hw) / MAP_RESOLUTION))] = 255
+        mask[r0:r1, px(x - hw):px(x + hw)] = 255
     for y in grid.ys:
-        r0, r1 = ny - int(np.ceil((y + hw) / MAP_RESOLUTION)), ny - int((y - hw) / MAP_RESOLUTION)
-        mask[r0:r1, :] = 255
+        mask[ny - px(y + hw):ny - px(y - hw), c0:c1] = 255
     return mask
 
 
@@ -205,7 +212,7 @@ def build_static(grid: Grid, rng: np.random.Generator) -> tuple[trimesh.Trimesh,
     """The static world mesh (global frame) and the (s, 7) footprints of its clutter."""
     W, H = grid.extent
     p = Parts()
-    p.box((W, H, 0.02), (W / 2, H / 2, -0.01), ASPHALT, 0.12)          # road surface, top at z=0
+    p.box((W, H, 0.02), (MAP_PAD + W / 2, MAP_PAD + H / 2, -0.01), ASPHALT, 0.12)          # road surface, top at z=0
     sw = grid.cfg.sidewalk_width
     lawn = rng.random() < 0.5
     for x0, x1, y0, y1 in grid.blocks:

@@ -13,7 +13,7 @@ import numpy as np
 from . import assets
 from . import geometry as geo
 from .config import ActorsConfig, SceneConfig
-from .layout import CURB_HEIGHT, Grid
+from .layout import CURB_HEIGHT, MAP_PAD, Grid
 from .world import Actor
 
 # Mean (l, w, h) per class from the nuScenes anchor configs; the spread is relative.
@@ -131,11 +131,11 @@ def _lane(grid: Grid, rng: np.random.Generator, lateral: float | None = None):
     # Right-hand traffic: the lane lies to the right of the direction of travel.
     if horizontal:
         heading = 0.0 if forward else np.pi
-        origin = np.array([0.0, c - lateral]) if forward else np.array([W, c + lateral])
+        origin = np.array([MAP_PAD, c - lateral]) if forward else np.array([MAP_PAD + W, c + lateral])
         length = W
     else:
         heading = np.pi / 2 if forward else -np.pi / 2
-        origin = np.array([c + lateral, 0.0]) if forward else np.array([c - lateral, H])
+        origin = np.array([c + lateral, MAP_PAD]) if forward else np.array([c - lateral, MAP_PAD + H])
         length = H
     return origin, heading, length, lateral
 
@@ -165,7 +165,7 @@ def place_actors(cfg: SceneConfig, grid: Grid, static: np.ndarray, duration: flo
     for _ in range(1000):
         origin, heading, length, _ = _lane(grid, rng)
         v = rng.uniform(*cfg.ego.speed)
-        centre = np.array([W, H]) / 2
+        centre = MAP_PAD + np.array([W, H]) / 2
         d = np.array([np.cos(heading), np.sin(heading)])
         s_mid = float(np.dot(centre - origin, d))
         s0 = s_mid - v * duration / 2 + rng.uniform(-lay.block_pitch / 4, lay.block_pitch / 4)

@@ -1,0 +1,109 @@
+"""`simgen check DIR`: validate a dataroot's tables, files and token integrity, and summarise it."""
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+
+from .config import ConfigError
+from .writer import TABLES
+
+# table -> [(field, table it must reference)]; "" is allowed where a chain ends.
+REFERENCES = {
+    "sample": [("scene_token", "scene"), ("prev", "sample"), ("next", "sample")],
+    "sample_data": [("sample_token", "sample"), ("ego_pose_token", "ego_pose"),
+                    ("calibrated_sensor_token", "calibrated_sensor"), ("prev", "sample_data"), ("next", "sample_data")],
+    "sample_annotation": [("sample_token", "sample"), ("instance_token", "instance"),
+                          ("visibility_token", "visibility"), ("prev", "sample_annotation"), ("next", "sample_annotation")],
+    "instance": [("category_token", "category"), ("first_annotation_token", "sample_annotation"),
+                 ("last_annotation_token", "sample_annotation")],
+    "scene": [("log_token", "log"), ("first_sample_token", "sample"), ("last_sample_token", "sample")],
+    "calibrated_sensor": [("sensor_token", "sensor")],
+}
+
+
+def load_tables(dataroot: Path, version: str) -> dict[str, list[dict]]:
+    folder = Path(dataroot) / version
+    if not folder.is_dir():
+        raise ConfigError(f"{dataroot}: no {version}/ folder with nuScenes tables")
+    tables = {}
+    for name in TABLES:
+        path = folder / f"{name}.json"
+        if not path.is_file():
+            raise ConfigError(f"{path}: missing table")
+        try:
+            tables[name] = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise ConfigError(f"{path}: corrupt JSON ({e})") from None
+        if not isinstance(tables[name], list):
+            raise ConfigError(f"{path}: expected a list of records")
+    return tables
+
+
+def find_problems(dataroot: Path, tables: dict[str, list[dict]]) -> list[str]:
+    """Every broken reference, duplicate token and missing or unreadable file."""
+    problems = []
+    tokens = {}
+    for name, rows in tables.items():
+        toks = [r.get("token") for r in rows]
+        if None in toks:
+            problems.append(f"{name}: a record has no token")
+        dup = [t for t, c in Counter(toks).items() if c > 1]
+        if dup:
+            problems.append(f"{name}: duplicate token {dup[0]}")
+        tokens[name] = set(toks)
+    for name, refs in REFERENCES.items():
+        for row in tables[name]:
+            for field, target in refs:
+                value = row.get(field)
+                if value != "" and value not in tokens[target]:
+                    problems.append(f"{name} {row.get('token')}: {field} {value!r} is not a {target} token")
+    for ann in tables["sample_annotation"]:
+        for a in ann.get("attribute_tokens", []):
+            if a not in tokens["attribute"]:
+                problems.append(f"sample_annotation {ann['token']}: unknown attribute {a}")
+    logs_in_maps = {t for m in tables["map"] for t in m.get("log_tokens", [])}
+    if not tables["map"]:
+        problems.append("map: the table is empty (nuscenes-devkit needs one)")
+    for log in tables["log"]:
+        if log["token"] not in logs_in_maps:
+            problems.append(f"log {log['token']}: not in any map's log_tokens")
+    files = [(r["filename"], r.get("fileformat")) for r in tables["sample_data"]] + \
+            [(m["filename"], "png") for m in tables["map"]]
+    for fname, fmt in files:
+        path = Path(dataroot) / fname
+        if not path.is_file():
+            problems.append(f"{fname}: missing file")
+            continue
+        size = path.stat().st_size
+        if fmt == "pcd" and size % 20:
+            problems.append(f"{fname}: size {size} is not a multiple of 5 float32 values (truncated?)")
+        elif fmt in ("jpg", "png"):
+            with open(path, "rb") as f:
+                head = f.read(4)
+            magic = b"\xff\xd8\xff" if fmt == "jpg" else b"\x89PNG"
+            if not head.startswith(magic):
+                problems.append(f"{fname}: not a {fmt} file")
+    return problems
+
+
+def check_dataroot(dataroot: Path, version: str) -> int:
+    """Print a summary and the problems; return 0 when the dataroot is valid, else 1."""
+    tables = load_tables(dataroot, version)
+    problems = find_problems(dataroot, tables)
+    cat = {c["token"]: c["name"] for c in tables["category"]}
+    inst_cat = {i["token"]: cat.get(i["category_token"], "?") for i in tables["instance"]}
+    per_class = Counter(inst_cat.get(a["instance_token"], "?") for a in tables["sample_annotation"])
+    splits_path = Path(dataroot) / version / "splits.json"
+    splits = json.loads(splits_path.read_text()) if splits_path.is_file() else {}
+    print(f"{dataroot}/{version}: {len(tables['scene'])} scenes, {len(tables['sample'])} samples, "
+          f"{len(tables['sample_data'])} sample_data, {len(tables['sample_annotation'])} annotations")
+    print("splits: " + ", ".join(f"{k} {len(v)}" for k, v in splits.items()))
+    for name, n in sorted(per_class.items(), key=lambda kv: -kv[1]):
+        print(f"  {name:30s} {n}")
+    for p in problems[:50]:
+        print(f"problem: {p}")
+    if len(problems) > 50:
+        print(f"... and {len(problems) - 50} more problems")
+    print("OK" if not problems else f"{len(problems)} problems")
+    return 0 if not problems else 1
