@@ -164,14 +164,16 @@ def pedestrian(l, w, h, shirt, trousers, skin=(200, 160, 130), seated=False) -> 
     leg_h = 0.0 if seated else 0.47 * h
     torso_h = 0.32 * h if not seated else 0.5 * (h - 2 * head_r)
     hip = bottom + leg_h
-    tw = min(w * 0.6, 0.42)
+    tw = min(w * 0.62, 0.5)
+    stride = 0.0 if seated else 0.18 * l   # one leg forward, one back, arms swinging opposite
     if not seated:
         for side in (-1, 1):
-            p.box((min(l, 0.16), 0.13, leg_h), (0, side * tw * 0.27, bottom + leg_h / 2), trousers, 0.2)
-    p.box((min(l, 0.26), tw, torso_h), (0, 0, hip + torso_h / 2), shirt, 0.35)
+            p.box((0.16, 0.14, leg_h), (side * stride, side * tw * 0.25, bottom + leg_h / 2), trousers, 0.2)
+    p.box((min(l * 0.45, 0.3), tw, torso_h), (0, 0, hip + torso_h / 2), shirt, 0.35)
     arm_h = 0.85 * torso_h
     for side in (-1, 1):
-        p.box((0.1, 0.09, arm_h), (0, side * (tw / 2 + 0.05), hip + torso_h - arm_h / 2), shirt, 0.35)
+        p.box((0.1, 0.08, arm_h), (-side * stride * 0.8, side * (tw / 2 + 0.045), hip + torso_h - arm_h / 2),
+              shirt, 0.35)
     p.sphere((0, 0, hip + torso_h + head_r + 0.01), head_r, skin, 0.3)
     return p
 
@@ -222,6 +224,8 @@ def motorcycle(l, w, h, color, rider_colors=None) -> trimesh.Trimesh:
     p.box((0.9, min(w, 0.4), 0.35), (0, 0, bottom + r + 0.15), (60, 60, 60), 0.4)
     p.box((0.7, min(w, 0.35), 0.2), (0.1, 0, bottom + r + 0.42), color, paint_reflectivity(color))
     seat_z = bottom + r + 0.55
+    p.cylinder((0.3, 0, bottom + r + 0.45), (0.42, 0, bottom + 0.98), 0.03, (40, 40, 40), 0.4, sections=6)
+    p.box((0.05, min(w * 0.95, 0.75), 0.04), (0.42, 0, bottom + 0.98), (40, 40, 40), 0.4)
     if rider_colors is not None and h / 2 - seat_z > 0.4:
         body_h = h / 2 - seat_z
         rider = pedestrian(0.3, min(w, 0.6), body_h, *rider_colors, seated=True)

@@ -73,13 +73,20 @@ def _renderer(cfg: SceneConfig, gl: str | None):
     return _RENDERER
 
 
+def build_world(s: MakeSettings, idx: int) -> World:
+    """The world of scene ``idx``: a pure function of the settings, the seed and the index."""
+    rng_world = scene_rng(s.seed, idx, 0)
+    world = sample_world(s.cfg, rng_world, s.samples_per_scene)
+    world.meta.update(sun_azimuth=float(rng_world.uniform(-np.pi, np.pi)),
+                      sun_elevation=float(rng_world.uniform(0.5, 1.2)))
+    return world
+
+
 def generate_scene(s: MakeSettings, dataroot: Path, idx: int) -> int:
     """Render, scan, label and write one scene. Returns its number of samples."""
     cfg = s.cfg
-    rng_world, rng_sensor = scene_rng(s.seed, idx, 0), scene_rng(s.seed, idx, 1)
-    world = sample_world(cfg, rng_world, s.samples_per_scene)
-    world.meta.update(sun_azimuth=float(rng_world.uniform(-np.pi, np.pi)),
-                      sun_elevation=float(rng_world.uniform(0.5, 1.2)))
+    world = build_world(s, idx)
+    rng_sensor = scene_rng(s.seed, idx, 1)
     renderer = _renderer(cfg, s.gl)
     renderer.set_world(world, key=(s.seed, idx, id(world)))
     scanner = LidarScanner(cfg.lidar, world)

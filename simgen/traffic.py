@@ -100,11 +100,14 @@ def make_actor(idx: int, cls: str, rng: np.random.Generator, parked=False, rider
     elif cls == "bus":
         mesh = assets.bus(l, w, h, paint)
     elif cls == "motorcycle":
+        if not rider:   # a parked motorcycle's box ends at its tank, not at a rider's head
+            h = rng.uniform(1.05, 1.2)
+            size = (l, w, h)
         mesh = assets.motorcycle(l, w, h, paint, clothes if rider else None)
     elif cls == "bicycle":
-        if rider:   # the box holds the rider: nuScenes annotates a ridden cycle with its rider
-            h = max(h, 1.55 + 0.1 * rng.standard_normal())
-            size = (l, w, h)
+        # The box holds the rider: nuScenes annotates a ridden cycle with its rider.
+        h = max(h, 1.55 + 0.1 * rng.standard_normal()) if rider else rng.uniform(0.95, 1.1)
+        size = (l, w, h)
         mesh = assets.bicycle(l, w, h, paint, clothes if rider else None)
     elif cls == "pedestrian":
         mesh = assets.pedestrian(l, w, h, *clothes).build()

@@ -1,0 +1,35 @@
+"""Shared fixtures: one small dataset made through the CLI, reused by the dataset tests."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+TINY_ARGS = ["--preset", "tiny", "--scenes", "2", "--samples-per-scene", "3", "--seed", "7", "--quiet"]
+
+
+def run_simgen(*args, check=True, **kw) -> subprocess.CompletedProcess:
+    """Run the simgen CLI in a subprocess, as a user would."""
+    proc = subprocess.run([sys.executable, "-m", "simgen.cli", *map(str, args)], capture_output=True, text=True, **kw)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"simgen {' '.join(map(str, args))} failed ({proc.returncode}):\n{proc.stderr}")
+    return proc
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory) -> Path:
+    """Two tiny scenes of three samples, made with one worker."""
+    out = tmp_path_factory.mktemp("tiny") / "data"
+    run_simgen("make", "--out", out, "--workers", "1", *TINY_ARGS)
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_nusc(tiny_dataset):
+    from nuscenes import NuScenes
+    return NuScenes("v1.0-sim", str(tiny_dataset), verbose=False)
