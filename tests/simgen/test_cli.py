@@ -1,0 +1,70 @@
+"""Bad input gets one clear line, exit code 2 and nothing written; --help explains."""
+from __future__ import annotations
+
+import pytest
+
+from conftest import run_simgen
+
+
+def _bad(tmp_path, *args):
+    out = tmp_path / "out"
+    proc = run_simgen("make", "--out", out, *args, check=False)
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert "Traceback" not in proc.stderr
+    assert not out.exists(), "nothing may be written on bad input"
+    return lines[-1]
+
+
+def test_unknown_preset_key(tmp_path):
+    preset = tmp_path / "bad.yaml"
+    preset.write_text("actors:\n  pedestrians_per_km: 10\n  unicorns: 3\n")
+    msg = _bad(tmp_path, "--scenes", "1", "--preset", preset)
+    assert str(preset) in msg and "actors" in msg and "unicorns" in msg
+
+
+def test_out_of_range_preset_value(tmp_path):
+    preset = tmp_path / "bad.yaml"
+    preset.write_text("lidar:\n  max_range: 300\n")
+    msg = _bad(tmp_path, "--scenes", "1", "--preset", preset)
+    assert "lidar.max_range" in msg and "[70.0, 100.0]" in msg
+
+
+@pytest.mark.parametrize("args, needle", [
+    (("--scenes", "-3"), "--scenes"),
+    (("--scenes", "1", "--resolution", "0x0"), "--resolution"),
+    (("--scenes", "1", "--preset", "no_such_preset"), "no_such_preset"),
+    (("--scenes", "1", "--workers", "0"), "--workers"),
+])
+def test_bad_arguments(tmp_path, args, needle):
+    assert needle in _bad(tmp_path, *args)
+
+
+def test_unwritable_out(tmp_path):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("a file, not a folder")
+    proc = run_simgen("make", "--scenes", "1", "--out", blocker / "data", check=False)
+    assert proc.returncode == 2 and "--out" in proc.stderr and "Traceback" not in proc.stderr
+    assert blocker.read_text() == "a file, not a folder"
+
+
+def test_presets_and_help():
+    proc = run_simgen("presets")
+    names = [ln.split()[0] for ln in proc.stdout.splitlines()]
+    assert {"urban", "dense_urban", "tiny"} <= set(names)
+    help_text = run_simgen("make", "--help").stdout
+    for flag in ("--scenes", "--preset", "--seed", "--workers", "--samples-per-scene", "--resolution", "--version"):
+        assert flag in help_text
+
+
+def test_check_reports_a_truncated_file(tiny_dataset, tmp_path):
+    import shutil
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_dataset, copy)
+    pcd = next((copy / "samples" / "LIDAR_TOP").glob("*.pcd.bin"))
+    pcd.write_bytes(pcd.read_bytes()[:-7])
+    proc = run_simgen("check", copy, check=False)
+    assert proc.returncode == 1 and pcd.name in proc.stdout and "truncated" in proc.stdout
+    (copy / "v1.0-sim" / "sample.json").write_text("[{")
+    proc = run_simgen("check", copy, check=False)
+    assert proc.returncode == 2 and "sample.json" in proc.stderr and "Traceback" not in proc.stderr
