@@ -81,8 +81,8 @@ class LidarConfig:
     max_range: float = field(default=100.0, metadata=_rng(70.0, 100.0))
     range_noise_sigma: float = field(default=0.02, metadata=_rng(0.0, 0.5))
     # A return is detected when rho * cos(incidence) / R^2 >= min_return (1/m^2): a target of
-    # reflectivity 0.1 at normal incidence is seen to about 70 m.
-    min_return: float = field(default=2e-5, metadata=_rng(0.0, 1.0))
+    # reflectivity 0.05 at normal incidence is seen to 100 m, the asphalt ahead to about 35 m.
+    min_return: float = field(default=5e-6, metadata=_rng(0.0, 1.0))
     # Intensity 255 is reached by rho * cos / R^2 >= 1 / intensity_ref_range^2.
     intensity_ref_range: float = field(default=6.0, metadata=_rng(0.5, 100.0))
 

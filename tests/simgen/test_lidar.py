@@ -318,22 +318,22 @@ def _road_rays(world, n, seed):
     return o, d
 
 
-def _brute_force_first_hit(mesh, o, d, chunk=48):
+def _brute_force_first_hit(mesh, o, d, chunk=64):
     """Möller-Trumbore against every triangle: (m,) distance to the nearest hit, inf for a miss."""
     tri = np.asarray(mesh.triangles)
-    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    v0, e1, e2 = tri[:, 0].T, (tri[:, 1] - tri[:, 0]).T, (tri[:, 2] - tri[:, 0]).T   # (3, F) each
     out = np.full(len(o), np.inf)
     for a in range(0, len(o), chunk):
-        oo, dd = o[a:a + chunk, None], d[a:a + chunk, None]
-        p = np.cross(dd, e2[None])
-        det = np.einsum("cfk,fk->cf", p, e1)
+        dx, dy, dz = (d[a:a + chunk, k, None] for k in range(3))                      # (c, 1)
+        sx, sy, sz = (o[a:a + chunk, k, None] - v0[k] for k in range(3))              # (c, F)
+        px, py, pz = dy * e2[2] - dz * e2[1], dz * e2[0] - dx * e2[2], dx * e2[1] - dy * e2[0]
+        det = px * e1[0] + py * e1[1] + pz * e1[2]
+        qx, qy, qz = sy * e1[2] - sz * e1[1], sz * e1[0] - sx * e1[2], sx * e1[1] - sy * e1[0]
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / det
-            s = oo - v0[None]
-            u = np.einsum("cfk,cfk->cf", s, p) * inv
-            q = np.cross(s, e1[None])
-            v = np.einsum("cfk,cfk->cf", np.broadcast_to(dd, q.shape), q) * inv
-            t = np.einsum("cfk,fk->cf", q, e2) * inv
+            u = (sx * px + sy * py + sz * pz) * inv
+            v = (dx * qx + dy * qy + dz * qz) * inv
+            t = (e2[0] * qx + e2[1] * qy + e2[2] * qz) * inv
         ok = (np.abs(det) > 1e-12) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
         out[a:a + chunk] = np.where(ok, t, np.inf).min(1)
     return out

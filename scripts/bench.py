@@ -1,0 +1,156 @@
+#!/usr/bin/env python
+"""The project's benchmarks. Prints one JSON object (``--json``) or a table.
+
+Medians over repeats, because machines are shared and noisy. Keys (simgen):
+  lidar_ms_per_sweep            one HDL-32E sweep of an urban world, all of LidarScanner.scan
+  lidar_embree_floor_ms         bare Embree intersects_first on the same scene (one posed mesh) and rays
+  render_ms_per_image_1600x900  one camera: rgb + depth + id pass
+  sample_s_1600x900             one worker, a whole sample (6 cameras, 10 sweeps, labels, writing)
+  make_speedup_2_workers        `make` wall time with 1 worker / with 2 workers
+  worker_peak_rss_mb            peak RSS of a make worker over many scenes
+  worker_rss_growth_mb          RSS after the last scene minus after the first (0 = no leak)
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def median_ms(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return 1000.0 * float(np.median(times))
+
+
+def bench_lidar(repeats: int) -> dict:
+    import trimesh
+    from simgen import geometry as geo
+    from simgen.config import load_preset
+    from simgen.lidar import LidarScanner, RayTarget
+    from simgen.pipeline import MakeSettings, build_world
+    cfg = load_preset("urban")
+    world = build_world(MakeSettings(cfg, 1, 0, 10, "v1.0-sim"), 0)
+    scanner = LidarScanner(cfg.lidar, world)
+    rng = np.random.default_rng(0)
+    scanner.scan(0.5, rng)  # builds the per-actor BVHs once, as every scene does
+    t = 1.0
+    sweep_ms = median_ms(lambda: scanner.scan(t, rng), repeats)
+    # The floor: the whole scene at t as one mesh, the same rays, bare intersects_first.
+    boxes = world.boxes_at(t)
+    meshes = [world.static_mesh] + [a.mesh.copy().apply_transform(geo.pose_2d(*boxes[i, :2], boxes[i, 6], boxes[i, 2]))
+                                    for i, a in enumerate(world.actors) if a.annotate]
+    scene_mesh = trimesh.util.concatenate(meshes)
+    target = RayTarget(scene_mesh, np.zeros(len(scene_mesh.faces)))
+    T_ge = world.ego_pose(t - 0.05 + scanner.frac * 0.05)
+    origin = T_ge[:, :3, :3] @ scanner.T_ego_from_lidar[:3, 3] + T_ge[:, :3, 3]
+    dirs = np.einsum("mij,mj->mi", T_ge[:, :3, :3], scanner.dir_ego)
+    target.engine.intersects_first(origin, dirs)
+    floor_ms = median_ms(lambda: target.engine.intersects_first(origin, dirs), repeats)
+    return {"lidar_ms_per_sweep": sweep_ms, "lidar_embree_floor_ms": floor_ms, "lidar_rays_per_sweep": len(dirs)}
+
+
+def bench_render(repeats: int) -> dict:
+    from simgen import geometry as geo
+    from simgen import rig
+    from simgen.camera import Renderer
+    from simgen.config import load_preset
+    from simgen.pipeline import MakeSettings, build_world
+    cfg = load_preset("urban")
+    world = build_world(MakeSettings(cfg, 1, 0, 10, "v1.0-sim"), 0)
+    r = Renderer(cfg.camera)
+    r.set_world(world, key=0)
+    cam = rig.cameras(cfg.camera.resolution)[0]
+    b = world.boxes_at(1.0)
+    poses = {a.id: geo.pose_2d(*b[i, :2], b[i, 6], b[i, 2]) for i, a in enumerate(world.actors) if a.annotate}
+    T = world.ego_pose(1.0) @ cam.T_ego_from_cam
+    r.render(cam, T, poses)
+    ms = median_ms(lambda: r.render(cam, T, poses), repeats)
+    r.close()
+    return {"render_ms_per_image_1600x900": ms}
+
+
+def run_make(out: Path, scenes: int, samples: int, workers: int, resolution: str, preset: str = "urban") -> float:
+    cmd = [sys.executable, "-m", "simgen.cli", "make", "--out", str(out), "--scenes", str(scenes),
+           "--samples-per-scene", str(samples), "--workers", str(workers), "--preset", preset, "--quiet"]
+    if resolution:
+        cmd += ["--resolution", resolution]
+    t = time.perf_counter()
+    subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - t
+
+
+def bench_make(quick: bool) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        samples = 4 if quick else 10
+        sample_s = run_make(tmp / "one", 1, samples, 1, "1600x900") / samples
+        n, k, res = (2, 2, "800x450") if quick else (4, 4, "800x450")
+        t1 = run_make(tmp / "w1", n, k, 1, res)
+        t2 = run_make(tmp / "w2", n, k, 2, res)
+    return {"sample_s_1600x900": sample_s, "make_speedup_2_workers": t1 / t2,
+            "make_1_worker_s": t1, "make_2_workers_s": t2}
+
+
+def bench_worker_memory(quick: bool) -> dict:
+    """Scenes one after another in one process (as a worker runs them): peak and growth of RSS."""
+    code = """
+import os, resource, sys, json
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+from pathlib import Path
+from simgen.config import load_preset
+from simgen.pipeline import MakeSettings, generate_scene
+s = MakeSettings(load_preset("urban"), int(sys.argv[2]), 0, 2, "v1.0-sim")
+rss = []
+for i in range(s.n_scenes):
+    generate_scene(s, Path(sys.argv[1]), i)
+    rss.append(int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20)
+print(json.dumps({"rss": rss, "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+    n = 3 if quick else 8
+    with tempfile.TemporaryDirectory() as tmp:
+        proc = subprocess.run([sys.executable, "-c", code, tmp, str(n)], check=True, cwd=ROOT,
+                              capture_output=True, text=True)
+    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    return {"worker_peak_rss_mb": r["peak"], "worker_rss_growth_mb": r["rss"][-1] - r["rss"][0],
+            "worker_rss_per_scene_mb": [round(v) for v in r["rss"]]}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--quick", action="store_true", help="fewer repeats and smaller runs")
+    ap.add_argument("--only", nargs="*", default=None, help="subset: lidar render make memory")
+    args = ap.parse_args()
+    repeats = 5 if args.quick else 20
+    parts = {"lidar": lambda: bench_lidar(repeats), "render": lambda: bench_render(repeats),
+             "make": lambda: bench_make(args.quick), "memory": lambda: bench_worker_memory(args.quick)}
+    result = {"machine": {"cpus": os.cpu_count()}}
+    for name, fn in parts.items():
+        if args.only is None or name in args.only:
+            result.update(fn())
+    if args.json:
+        print(json.dumps(result, indent=1))
+    else:
+        for k, v in result.items():
+            print(f"{k:32s} {v}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
