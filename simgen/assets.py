@@ -226,6 +226,8 @@ def motorcycle(l, w, h, color, rider_colors=None) -> trimesh.Trimesh:
     seat_z = bottom + r + 0.55
     p.cylinder((0.3, 0, bottom + r + 0.45), (0.42, 0, bottom + 0.98), 0.03, (40, 40, 40), 0.4, sections=6)
     p.box((0.05, min(w * 0.95, 0.75), 0.04), (0.42, 0, bottom + 0.98), (40, 40, 40), 0.4)
+    top = h / 2 - 0.02 if rider_colors is None else bottom + 1.25
+    p.box((0.03, 0.4, top - (bottom + 0.95)), (0.5, 0, (top + bottom + 0.95) / 2), (150, 170, 190), 0.1)  # windshield
     if rider_colors is not None and h / 2 - seat_z > 0.4:
         body_h = h / 2 - seat_z
         rider = pedestrian(0.3, min(w, 0.6), body_h, *rider_colors, seated=True)

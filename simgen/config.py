@@ -117,15 +117,16 @@ def _check_number(value, typ, meta, where):
 def _build(cls, data: Any, where: str):
     """Build dataclass ``cls`` from a YAML mapping, strictly."""
     if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
+        raise ConfigError(f"{where.rstrip(':')}: expected a mapping, got {type(data).__name__}")
     hints = get_type_hints(cls)
     public = {f.name: f for f in fields(cls) if not f.metadata.get("internal")}
     unknown = sorted(set(data) - set(public))
     if unknown:
-        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(public)})")
+        raise ConfigError(f"{where.rstrip(':')}: unknown key {unknown[0]!r} (allowed: {', '.join(public)})")
     kwargs = {}
     for name, value in data.items():
-        f, typ, sub = public[name], hints[name], f"{where}.{name}"
+        f, typ = public[name], hints[name]
+        sub = f"{where} {name}" if where.endswith(":") else f"{where}.{name}"
         meta = dict(f.metadata)
         if dataclasses.is_dataclass(typ):
             kwargs[name] = _build(typ, value, sub)
@@ -174,12 +175,15 @@ def load_preset(name_or_path: str) -> SceneConfig:
     try:
         data = yaml.safe_load(path.read_text())
     except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise ConfigError(f"{path}: not valid YAML{where} ({problem})") from None
     if data is None:
         data = {}
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level")
-    cfg = _build(SceneConfig, data, str(path))
+    cfg = _build(SceneConfig, data, f"{path}:")
     name = path.stem if name_or_path in presets else str(path)
     return dataclasses.replace(cfg, name=name, source=path.read_text())
 

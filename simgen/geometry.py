@@ -98,7 +98,8 @@ def wrap_angle(a):
 def box_corners(box) -> np.ndarray:
     """(7,) box (x, y, z, l, w, h, yaw) -> (8, 3) corners in the box's parent frame.
 
-    Order: the four bottom corners counter-clockwise from front-left... then the top four.
+    Order: the bottom corners front-left, front-right, rear-right, rear-left (clockwise seen
+    from above), then the top corners in the same order.
     """
     x, y, z, l, w, h, yaw = np.asarray(box, dtype=np.float64)
     sx = np.array([1, 1, -1, -1, 1, 1, -1, -1]) * l / 2

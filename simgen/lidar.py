@@ -126,9 +126,14 @@ class LidarScanner:
 
     def __init__(self, cfg: LidarConfig, world: World):
         self.cfg, self.world = cfg, world
-        self.frac, self.ring, self.dir_ego = ray_pattern(cfg)
+        self.frac, self.ring, d = ray_pattern(cfg)
         self.n_az = len(self.frac) // N_BEAMS
         self.T_ego_from_lidar = T_ego_from_lidar()
+        # The lasers are fixed in the sensor, which is mounted tilted by about 1.4 deg: take the
+        # pattern's azimuths relative to the mount's yaw, then apply the whole mount rotation.
+        R = self.T_ego_from_lidar[:3, :3]
+        Rz = geo.pose_2d(0.0, 0.0, np.arctan2(R[1, 0], R[0, 0]))[:3, :3]
+        self.dir_ego = d @ (R @ Rz.T).T
         moving = world.speed.max(axis=1) > 0
         annotated = np.array([a.annotate for a in world.actors])
         self.static_idx = np.nonzero(~moving & annotated)[0]
@@ -162,7 +167,7 @@ class LidarScanner:
         r = np.hypot(box[3], box[4]) / 2 + 1.0     # + how far the sensor moves in one sweep
         if d <= r:
             return np.arange(len(self.frac))
-        half = np.arcsin(r / d)
+        half = np.arcsin(r / d) + np.deg2rad(1.0)   # + the mount tilt's effect on azimuth
         centre = ((np.pi - (np.arctan2(rel[1], rel[0]) - ego_yaw)) / (2 * np.pi)) % 1.0
         c0 = int(np.floor((centre - half / (2 * np.pi)) * self.n_az))
         c1 = int(np.ceil((centre + half / (2 * np.pi)) * self.n_az))

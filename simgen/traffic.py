@@ -100,9 +100,9 @@ def make_actor(idx: int, cls: str, rng: np.random.Generator, parked=False, rider
     elif cls == "bus":
         mesh = assets.bus(l, w, h, paint)
     elif cls == "motorcycle":
-        if not rider:   # a parked motorcycle's box ends at its tank, not at a rider's head
-            h = rng.uniform(1.05, 1.2)
-            size = (l, w, h)
+        # A parked motorcycle's box ends at its windshield; a ridden one's at the rider's head.
+        h = rng.uniform(1.25, 1.4) if not rider else max(h, 1.5 + 0.05 * rng.standard_normal())
+        size = (l, w, h)
         mesh = assets.motorcycle(l, w, h, paint, clothes if rider else None)
     elif cls == "bicycle":
         # The box holds the rider: nuScenes annotates a ridden cycle with its rider.

@@ -94,7 +94,7 @@ def test_bad_field_is_one_line_naming_file_and_field(tmp_path, text, field, extr
     msg = config_error(path)
     assert str(path) in msg
     if field is not None:
-        assert f".{field}" in msg, msg
+        assert f": {field}" in msg, msg
     for word in extra:
         assert word in msg, msg
 

@@ -140,7 +140,7 @@ def test_every_ray_returns_on_the_known_planes(room_sweep):
     np.testing.assert_allclose(p_ego[np.arange(n), axis], plane, rtol=0, atol=1e-4)
     wall = (axis == 0) & (side > 0)
     ground = (axis == 2) & (side < 0)
-    assert wall.sum() > 5000 and ground.sum() > 5000
+    assert wall.sum() > 4000 and ground.sum() > 4000
     assert np.abs(p_ego[wall, 0] - 10.0).max() < 1e-4
     assert np.abs(p_ego[ground, 2]).max() < 1e-4
     # points are range * direction from the sensor (stationary ego), in the sensor frame
@@ -219,7 +219,7 @@ def test_range_noise_on_the_wall():
     t_true, axis, side = room_exit(o, d_ego, *ROOM)
     wall = (axis == 0) & (side > 0)
     err = sweep.range[wall] - t_true[wall]
-    assert wall.sum() > 5000
+    assert wall.sum() > 4000
     assert abs(err.std() - sigma) < 0.003
     assert abs(err.mean()) < 0.003
     # the noise moves the point along its ray: the stored point sits at the measured range
