@@ -57,11 +57,9 @@ def bench_lidar(repeats: int) -> dict:
                                     for i, a in enumerate(world.actors) if a.annotate]
     scene_mesh = trimesh.util.concatenate(meshes)
     target = RayTarget(scene_mesh, np.zeros(len(scene_mesh.faces)))
-    T_ge = world.ego_pose(t - 0.05 + scanner.frac * 0.05)
-    origin = T_ge[:, :3, :3] @ scanner.T_ego_from_lidar[:3, 3] + T_ge[:, :3, 3]
-    dirs = np.einsum("mij,mj->mi", T_ge[:, :3, :3], scanner.dir_ego)
-    target.engine.intersects_first(origin, dirs)
-    floor_ms = median_ms(lambda: target.engine.intersects_first(origin, dirs), repeats)
+    origin, dirs = scanner.rays_global(t - 0.05 + scanner.frac * 0.05)
+    target.first_triangles(origin, dirs)
+    floor_ms = median_ms(lambda: target.first_triangles(origin, dirs), repeats)
     return {"lidar_ms_per_sweep": sweep_ms, "lidar_embree_floor_ms": floor_ms, "lidar_rays_per_sweep": len(dirs)}
 
 

@@ -25,6 +25,12 @@ N_BEAMS = 32
 ELEVATIONS_DEG = np.linspace(-30.67, 10.67, N_BEAMS)   # 1.33 deg apart; ring 0 is the lowest
 SWEEP_PERIOD = 0.05
 
+try:
+    import embreex  # noqa: F401
+    _HAS_EMBREE = True
+except ImportError:  # trimesh's pure-Python engine is the fallback
+    _HAS_EMBREE = False
+
 
 @dataclass
 class Sweep:
@@ -59,29 +65,48 @@ def ray_pattern(cfg: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class RayTarget:
     """A mesh ready for first-hit queries: the ray engine plus plain per-face arrays.
 
-    Embree through trimesh when embreex is present; trimesh's pure-Python engine otherwise (still
-    exact, only slower). Face data is copied out of trimesh once, because trimesh re-validates its
-    caches (by hashing the arrays) on every attribute access.
+    Embree (embreex) when present, else trimesh's pure-Python engine (exact, only slower). Embree
+    is called directly rather than through trimesh: for the many small per-actor queries of a
+    sweep, trimesh's per-call work (re-normalising directions, re-validating caches) costs more
+    than the ray casting. Coordinates are taken relative to the mesh's lower corner so that
+    float32 keeps millimetre precision anywhere in the world.
     """
 
     def __init__(self, mesh: trimesh.Trimesh, reflectivity: np.ndarray, engine: str = "auto"):
-        from trimesh.ray import has_embree
-        if engine == "embree" or (engine == "auto" and has_embree):
-            from trimesh.ray.ray_pyembree import RayMeshIntersector
+        vertices, faces = np.array(mesh.vertices, np.float64), np.array(mesh.faces, np.int64)
+        if engine == "auto":
+            engine = "embree" if _HAS_EMBREE else "triangle"
+        self.engine = engine
+        self.origin = vertices.min(axis=0) if len(vertices) else np.zeros(3)
+        if engine == "embree":
+            from embreex import rtcore_scene
+            from embreex.mesh_construction import TriangleMesh
+            self._scene = rtcore_scene.EmbreeScene()
+            TriangleMesh(scene=self._scene, vertices=(vertices - self.origin).astype(np.float32),
+                         indices=faces.astype(np.int32))
         else:
             from trimesh.ray.ray_triangle import RayMeshIntersector
-        self.engine = RayMeshIntersector(mesh)
+            self._scene = RayMeshIntersector(mesh)
         self.normals = np.array(mesh.face_normals)
-        self.v0 = np.array(mesh.vertices)[np.array(mesh.faces)[:, 0]]
+        self.v0 = vertices[faces[:, 0]]
         self.reflectivity = np.asarray(reflectivity, np.float32)
+
+    def first_triangles(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """(m,) index of the first triangle each ray hits, -1 for a miss."""
+        if len(origins) == 0:
+            return np.zeros(0, np.int64)
+        if self.engine == "embree":
+            return np.asarray(self._scene.run((origins - self.origin).astype(np.float32),
+                                              dirs.astype(np.float32)), dtype=np.int64)
+        return np.asarray(self._scene.intersects_first(origins, dirs), dtype=np.int64)
 
     def first_hits(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(m, 3) rays with unit directions -> (m,) hit distance (inf for a miss) and triangle (-1).
 
-        The distance is the exact ray-plane distance to the first triangle the engine reports.
+        The distance is the exact (float64) ray-plane distance to the triangle the engine reports.
         """
         dist = np.full(len(origins), np.inf)
-        tri = np.asarray(self.engine.intersects_first(origins, dirs), dtype=np.int64)
+        tri = self.first_triangles(origins, dirs)
         hit = np.nonzero(tri >= 0)[0]
         if len(hit):
             n = self.normals[tri[hit]]
@@ -150,6 +175,20 @@ class LidarScanner:
         self.static_ids = np.concatenate([np.zeros(len(sm.faces), np.int32), statics.ids[statics.face_owner]])
         self._actor_rays = {}
 
+    def rays_global(self, t_ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Origins and unit directions (m, 3), global frame, of rays fired at times ``t_ray``.
+
+        The ego pose is planar (ego_pose z is 0, rotation about z only), so each ray's pose is
+        its interpolated (x, y, yaw), applied without building (m, 4, 4) matrices.
+        """
+        x, y, yaw = self.world.ego_xy_yaw(t_ray)
+        c, s = np.cos(yaw), np.sin(yaw)
+        p = self.T_ego_from_lidar[:3, 3]
+        d = self.dir_ego
+        origin = np.stack([x + c * p[0] - s * p[1], y + s * p[0] + c * p[1], np.full_like(x, p[2])], 1)
+        dirs = np.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1], d[:, 2]], 1)
+        return origin, dirs
+
     def _poses(self, idx: np.ndarray, t: float) -> np.ndarray:
         b = self.world.boxes_at(t)[idx]
         return geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
@@ -178,9 +217,7 @@ class LidarScanner:
         """Cast one sweep ending at ``t_end`` (s). ``rng`` draws the range noise."""
         cfg = self.cfg
         t_ray = t_end - SWEEP_PERIOD + self.frac * SWEEP_PERIOD
-        T_ge = self.world.ego_pose(t_ray)                                  # (m, 4, 4) T_global_from_ego
-        origin = T_ge[:, :3, :3] @ self.T_ego_from_lidar[:3, 3] + T_ge[:, :3, 3]
-        dirs = np.einsum("mij,mj->mi", T_ge[:, :3, :3], self.dir_ego)
+        origin, dirs = self.rays_global(t_ray)
         dist, tri = self.static.first_hits(origin, dirs)
         hit = tri >= 0
         rho = np.zeros(len(dist), np.float32)

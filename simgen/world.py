@@ -85,13 +85,17 @@ class World:
         """(n,) speeds (m/s) at time ``t``."""
         return _interp(self.times, self.speed[..., None], t)[:, 0]
 
-    def ego_pose(self, t) -> np.ndarray:
-        """T_global_from_ego at time(s) ``t``: (4, 4) for a scalar, (m, 4, 4) for an array."""
+    def ego_xy_yaw(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The ego frame's origin (rear axle) x, y and yaw at times ``t`` ((m,) arrays)."""
         t_arr = np.atleast_1d(np.asarray(t, dtype=np.float64))
         c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
         x = np.interp(t_arr, self.times, self.xy[0, :, 0]) - EGO_CENTRE_AHEAD_OF_ORIGIN * c
         y = np.interp(t_arr, self.times, self.xy[0, :, 1]) - EGO_CENTRE_AHEAD_OF_ORIGIN * s
-        T = geo.poses_2d(x, y, np.full_like(x, self.yaw[0]))
+        return x, y, np.full_like(x, self.yaw[0])
+
+    def ego_pose(self, t) -> np.ndarray:
+        """T_global_from_ego at time(s) ``t``: (4, 4) for a scalar, (m, 4, 4) for an array."""
+        T = geo.poses_2d(*self.ego_xy_yaw(t))
         return T[0] if np.ndim(t) == 0 else T
 
 
