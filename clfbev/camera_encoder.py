@@ -1,0 +1,254 @@
+"""Camera branch: ResNet + FPN + lift-splat (Philion & Fidler 2020) -> camera BEV.
+
+Lift: every feature-map cell predicts a softmax over D depth bins and a context vector of C
+channels; their outer product places the context along the cell's camera ray, weighted by the
+depth probability. Splat: the D * h * w frustum points of every camera are scatter-added into a
+(nz, ny, nx) voxel grid over ``pc_range``; then the z slices are concatenated into channels.
+
+Conventions
+-----------
+- Pixel coordinates are continuous with the pixel-edge convention: pixel (row r, col c) covers
+  u in [c, c + 1), v in [r, r + 1), so its centre is (c + 0.5, r + 0.5). Then resizing an image by
+  s scales K's first two rows by s exactly, and a horizontal flip of a W-wide image is u' = W - u.
+  Feature cell (i, j) at stride s covers input pixels [j s, (j + 1) s) x [i s, (i + 1) s) and its
+  frustum ray goes through the centre ((j + 0.5) s, (i + 0.5) s).
+- ``img_aug`` (3, 3) maps ORIGINAL-image pixels (the ones ``intrinsics`` describe) to AUGMENTED
+  pixels (the image the network sees): ``[u', v', 1]^T ~ img_aug @ [u, v, 1]^T``. It covers
+  resize, crop, flip (and rotation). The geometry undoes it with ``img_aug^-1``.
+- Camera frame: x right, y down, z forward; the depth of a bin is camera-frame z (not range).
+- Depth bins ``(d_min, d_max, d_step)``: D = round((d_max - d_min) / d_step) bins; bin k covers
+  [d_min + k step, d_min + (k + 1) step) and its frustum point sits at the bin centre, so the
+  depth-bin target for a lidar depth z is ``floor((z - d_min) / step)``.
+- Output frame: whatever ``T_lidar_from_cam`` maps to (the lidar frame). BEV cell (iy, ix) covers
+  x in [xmin + ix dx, xmin + (ix + 1) dx), y in [ymin + iy dy, ...): rows index y, columns x.
+- z-compression concatenates the nz slices into channels (as BEVFusion), which keeps height
+  information; with nz = 1 (the usual camera grid, one 20 m slab) it equals a sum over z.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from clfbev.ops.voxelize import grid_shape_of
+from clfbev.resnet import FPN, ResNet
+
+
+def depth_bin_centres(depth_bins: tuple[float, float, float]) -> Tensor:
+    """(D,) float32 depths (m, camera z) of the bins of ``(d_min, d_max, d_step)``, at bin centres."""
+    d_min, d_max, d_step = (float(v) for v in depth_bins)
+    n = int(round((d_max - d_min) / d_step)) if d_step > 0 else 0
+    if n < 1 or d_min <= 0:
+        raise ValueError(f"depth_bins (d_min, d_max, d_step) must give >= 1 bin at d_min > 0, got {depth_bins}")
+    return d_min + d_step * (torch.arange(n, dtype=torch.float32) + 0.5)
+
+
+def lift_geometry(
+    intrinsics: Tensor,
+    T_lidar_from_cam: Tensor,
+    img_aug: Tensor | None,
+    image_size: tuple[int, int],
+    feature_stride: int,
+    depth_bins: tuple[float, float, float],
+) -> Tensor:
+    """Lidar-frame position of every frustum point.
+
+    Parameters
+    ----------
+    intrinsics : (B, N, 3, 3) K of the ORIGINAL images (before ``img_aug``).
+    T_lidar_from_cam : (B, N, 4, 4) camera -> lidar frame.
+    img_aug : (B, N, 3, 3) original -> augmented pixels, or None for identity.
+    image_size : (H, W) of the augmented image the network sees.
+    feature_stride : the feature map's stride; H and W must be multiples of it.
+    depth_bins : (d_min, d_max, d_step), see :func:`depth_bin_centres`.
+
+    Returns
+    -------
+    (B, N, D, h, w, 3) float32 lidar-frame xyz, h = H / stride, w = W / stride.
+    """
+    H, W = image_size
+    s = feature_stride
+    if H % s or W % s:
+        raise ValueError(f"image_size {image_size} must be a multiple of feature_stride {s}")
+    B, N = intrinsics.shape[:2]
+    dev = intrinsics.device
+    f32 = dict(device=dev, dtype=torch.float32)
+    depths = depth_bin_centres(depth_bins).to(dev)                          # (D,)
+    # Feature-cell centres in augmented-image pixels (pixel-edge convention).
+    u = (torch.arange(W // s, **f32) + 0.5) * s
+    v = (torch.arange(H // s, **f32) + 0.5) * s
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    pix = torch.stack([uu, vv, torch.ones_like(uu)], dim=-1)               # (h, w, 3)
+
+    # Augmented pixel -> original pixel -> camera ray: ray ~ (A K)^-1 pix. In float64 so that
+    # the round trip pixel -> ray -> pixel stays exact far below a pixel, whatever K's scale.
+    K = intrinsics.double()
+    M = K if img_aug is None else img_aug.double() @ K                     # cam ray -> aug pixel
+    rays = torch.einsum("bnij,hwj->bnhwi", torch.linalg.inv(M), pix.double())
+    # Normalise to z = 1 so that scaling by a bin depth gives camera z = that depth (also
+    # absorbs any projective scale in img_aug).
+    rays = rays / rays[..., 2:3]                                            # (B, N, h, w, 3)
+    T = T_lidar_from_cam.double()
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    # Rotate the unit-depth rays once, then scale by each bin depth: p = d R ray + t.
+    rays_lidar = torch.einsum("bnij,bnhwj->bnhwi", R, rays).float()        # (B, N, h, w, 3)
+    pts = depths.view(1, 1, -1, 1, 1, 1) * rays_lidar[:, :, None]           # (B, N, D, h, w, 3)
+    return pts + t.float().view(B, N, 1, 1, 1, 3)
+
+
+def splat(
+    depth_probs: Tensor,
+    context: Tensor,
+    geometry: Tensor,
+    pc_range: tuple[float, ...],
+    bev_voxel: tuple[float, float, float],
+) -> Tensor:
+    """Scatter-add the frustum features ``depth_probs (x) context`` into a voxel grid.
+
+    Vectorised: one ``index_add_`` over all points of the batch. Points outside ``pc_range`` go
+    to a dump row that is dropped afterwards, which avoids copying the kept points out.
+
+    Parameters
+    ----------
+    depth_probs : (B, N, D, h, w) weight of each frustum point (a softmax over D in the model).
+    context : (B, N, C, h, w) per-cell context features.
+    geometry : (B, N, D, h, w, 3) lidar-frame xyz of each frustum point (:func:`lift_geometry`).
+    pc_range : (xmin, ymin, zmin, xmax, ymax, zmax), lidar frame, metres.
+    bev_voxel : (dx, dy, dz) metres.
+
+    Returns
+    -------
+    (B, C, nz, ny, nx) voxel features; voxel (iz, iy, ix) covers
+    [min + i * d, min + (i + 1) * d) on each axis.
+    """
+    B, N, D, h, w = depth_probs.shape
+    C = context.shape[2]
+    if context.shape != (B, N, C, h, w) or geometry.shape != (B, N, D, h, w, 3):
+        raise ValueError(
+            f"splat: depth {tuple(depth_probs.shape)}, context {tuple(context.shape)} and geometry "
+            f"{tuple(geometry.shape)} disagree; need (B,N,D,h,w), (B,N,C,h,w), (B,N,D,h,w,3)"
+        )
+    nz, ny, nx = grid_shape_of(pc_range, bev_voxel)
+    lo = geometry.new_tensor(pc_range[:3])
+    size = geometry.new_tensor(bev_voxel)
+    idx = torch.floor((geometry - lo) / size).long()                       # (B, N, D, h, w, 3) = ix, iy, iz
+    ix, iy, iz = idx.unbind(-1)
+    keep = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny) & (iz >= 0) & (iz < nz)
+    b = torch.arange(B, device=geometry.device).view(B, 1, 1, 1, 1)
+    n_cells = B * nz * ny * nx
+    flat = ((b * nz + iz) * ny + iy) * nx + ix
+    flat = torch.where(keep, flat, torch.full_like(flat, n_cells))          # dump row for dropped points
+
+    # Outer product, channel-last so each point is one row: (B, N, D, h, w, C).
+    feats = depth_probs.unsqueeze(-1) * context.permute(0, 1, 3, 4, 2).unsqueeze(2)
+    out = feats.new_zeros(n_cells + 1, C)
+    out = out.index_add(0, flat.reshape(-1), feats.reshape(-1, C))
+    return out[:n_cells].view(B, nz, ny, nx, C).permute(0, 4, 1, 2, 3).contiguous()
+
+
+def compress_z(voxels: Tensor) -> Tensor:
+    """(B, C, nz, ny, nx) -> (B, nz * C, ny, nx): slice iz fills channels [iz C, (iz + 1) C)."""
+    B, C, nz, ny, nx = voxels.shape
+    return voxels.permute(0, 2, 1, 3, 4).reshape(B, nz * C, ny, nx)
+
+
+class CameraEncoder(nn.Module):
+    """Multi-camera images -> camera BEV by lift-splat.
+
+    Parameters
+    ----------
+    depth, width : ResNet depth (18/34/50/101) and first-stage width.
+    fpn_ch : FPN output channels.
+    depth_bins : (d_min, d_max, d_step) in metres of camera z.
+    context_ch : C, context channels per frustum point.
+    image_size : (H, W) of the (augmented) images fed to ``forward``.
+    feature_stride : 8 (FPN over C3-C5) or 16 (FPN over C4-C5).
+    pc_range : (xmin, ymin, zmin, xmax, ymax, zmax) of the voxel grid, lidar frame.
+    bev_voxel : (dx, dy, dz) voxel size.
+    """
+
+    def __init__(
+        self,
+        depth: int,
+        width: int,
+        fpn_ch: int,
+        depth_bins: tuple[float, float, float],
+        context_ch: int,
+        image_size: tuple[int, int],
+        feature_stride: int,
+        pc_range: tuple[float, ...],
+        bev_voxel: tuple[float, float, float],
+    ) -> None:
+        super().__init__()
+        if feature_stride not in (8, 16):
+            raise ValueError(f"feature_stride must be 8 or 16, got {feature_stride}")
+        self.depth_bins = tuple(float(v) for v in depth_bins)
+        self.image_size = (int(image_size[0]), int(image_size[1]))
+        self.feature_stride = feature_stride
+        self.pc_range = tuple(float(v) for v in pc_range)
+        self.bev_voxel = tuple(float(v) for v in bev_voxel)
+        self.grid_shape = grid_shape_of(self.pc_range, self.bev_voxel)      # (nz, ny, nx)
+        self.num_depth_bins = len(depth_bin_centres(self.depth_bins))
+        self.context_ch = context_ch
+        H, W = self.image_size
+        if H % feature_stride or W % feature_stride:
+            raise ValueError(f"image_size {image_size} must be a multiple of feature_stride {feature_stride}")
+
+        self.backbone = ResNet(depth, 3, width)
+        # Levels fed to the FPN: its output has the stride of the finest one.
+        self._levels = slice(0, 3) if feature_stride == 8 else slice(1, 3)
+        self.neck = FPN(list(self.backbone.out_channels[self._levels]), fpn_ch)
+        # One 1x1 conv predicts D depth logits and C context channels per cell (LSS).
+        self.depth_net = nn.Conv2d(fpn_ch, self.num_depth_bins + context_ch, 1)
+
+    @property
+    def out_channels(self) -> int:
+        """Channels of the camera BEV: context_ch per z slice."""
+        return self.context_ch * self.grid_shape[0]
+
+    @property
+    def bev_shape(self) -> tuple[int, int]:
+        """(ny, nx) of the camera BEV."""
+        return self.grid_shape[1], self.grid_shape[2]
+
+    def image_features(self, images: Tensor) -> tuple[Tensor, Tensor]:
+        """images (B, N, 3, H, W) -> depth_probs (B, N, D, h, w), context (B, N, C, h, w).
+
+        Exposed separately so a caller can supervise the depth distribution (BEVDepth-style).
+        """
+        B, N, _, H, W = images.shape
+        if (H, W) != self.image_size:
+            raise ValueError(f"CameraEncoder built for image_size {self.image_size}, got {(H, W)}")
+        feats = self.backbone(images.flatten(0, 1))
+        x = self.depth_net(self.neck(feats[self._levels]))
+        h, w = H // self.feature_stride, W // self.feature_stride
+        D = self.num_depth_bins
+        depth = x[:, :D].softmax(dim=1).view(B, N, D, h, w)
+        context = x[:, D:].reshape(B, N, self.context_ch, h, w)
+        return depth, context
+
+    def forward(
+        self,
+        images: Tensor,
+        intrinsics: Tensor,
+        T_lidar_from_cam: Tensor,
+        img_aug: Tensor | None = None,
+    ) -> Tensor:
+        """Camera BEV.
+
+        Parameters
+        ----------
+        images : (B, N, 3, H, W) normalised images (after augmentation).
+        intrinsics : (B, N, 3, 3) K of the original images.
+        T_lidar_from_cam : (B, N, 4, 4) camera -> lidar frame.
+        img_aug : (B, N, 3, 3) original -> augmented pixels, or None.
+
+        Returns
+        -------
+        (B, out_channels, ny, nx) camera BEV in the lidar frame.
+        """
+        depth, context = self.image_features(images)
+        geom = lift_geometry(
+            intrinsics, T_lidar_from_cam, img_aug, self.image_size, self.feature_stride, self.depth_bins
+        )
+        return compress_z(splat(depth, context, geom, self.pc_range, self.bev_voxel))

@@ -1,0 +1,455 @@
+"""Tests for clfbev.anchors, clfbev.head and clfbev.losses: exact anchor grids, SECOND-style
+class-aware assignment on hand-computed IoUs, hand-computed losses, decode(encode) round trips."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from clfbev.anchors import ANCHOR_SIZES, CLASS_NAMES, MATCH_THRESHOLDS, anchor_class_ids, make_anchors, match_thresholds
+from clfbev.head import (
+    AnchorHead,
+    FlatPredictions,
+    HeadOutput,
+    Targets,
+    assign_targets,
+    decode,
+    direction_target,
+    stack_targets,
+)
+from clfbev.losses import LossWeights, detection_loss, direction_cross_entropy, sigmoid_focal_loss, sin_difference, smooth_l1
+from clfbev.ops.boxes import bev_iou
+
+CAR_L, CAR_W, CAR_H = ANCHOR_SIZES["car"]
+
+
+def assert_close(actual: torch.Tensor, expected, atol: float = 1e-6, rtol: float = 1e-6) -> None:
+    """numpy's assert_allclose on tensors (torch.testing's first call costs seconds of imports)."""
+    expected = np.asarray(expected.detach().cpu().double().numpy() if torch.is_tensor(expected) else expected)
+    actual_np = actual.detach().cpu().double().numpy()
+    assert actual_np.shape == expected.shape, (actual_np.shape, expected.shape)
+    np.testing.assert_allclose(actual_np, expected, atol=atol, rtol=rtol)
+
+
+def to_map(flat: torch.Tensor, ny: int, nx: int, n_anchors: int) -> torch.Tensor:
+    """Inverse of HeadOutput.flatten for one sample: (N, k) rows in (iy, ix, a) order ->
+    (1, A * k, ny, nx) anchor-major channels. Written independently of the library code."""
+    k = flat.shape[1]
+    return flat.reshape(ny, nx, n_anchors, k).permute(2, 3, 0, 1).reshape(1, n_anchors * k, ny, nx)
+
+
+def line_anchors(class_names, nx: int = 8):
+    """One row of 1 m cells along x: centres x = 0.5 .. nx - 0.5, y = 0."""
+    return make_anchors(class_names, (1, nx), (0.0, -0.5, -5.0, float(nx), 0.5, 3.0))
+
+
+def car(x, y=0.0, yaw=0.0, vx=0.0, vy=0.0, l=CAR_L, w=CAR_W):
+    return [x, y, -1.84 + CAR_H / 2, l, w, CAR_H, yaw, vx, vy]
+
+
+# ----------------------------------------------------------------------------------------------
+# Anchors
+# ----------------------------------------------------------------------------------------------
+
+
+def test_anchor_grid_centres_sizes_exact():
+    names = ("car", "pedestrian")
+    anchors = make_anchors(names, (2, 4), (0.0, -4.0, -5.0, 8.0, 4.0, 3.0))
+    assert anchors.shape == (2, 4, 2, 2, 7) and anchors.dtype == torch.float32
+    xs, ys = [1.0, 3.0, 5.0, 7.0], [-2.0, 2.0]  # 2 m cells, centred
+    expected = np.zeros((2, 4, 2, 2, 7))
+    for iy, y in enumerate(ys):
+        for ix, x in enumerate(xs):
+            for c, name in enumerate(names):
+                l, w, h = ANCHOR_SIZES[name]
+                for r, yaw in enumerate([0.0, math.pi / 2]):
+                    expected[iy, ix, c, r] = [x, y, -1.84 + h / 2, l, w, h, yaw]
+    assert_close(anchors, expected)
+    assert_close(anchors[0, 0, 0, 0, 2], torch.tensor(-0.98))  # a car's centre, lidar frame
+    # Flattened order is (iy, ix, cls, rot).
+    ids = anchor_class_ids(anchors)
+    assert ids.tolist() == [0, 0, 1, 1] * 8
+    assert torch.equal(anchors.reshape(-1, 7)[((0 * 4 + 1) * 2 + 0) * 2 + 1], anchors[0, 1, 0, 1])
+
+
+def test_anchor_tables_cover_all_classes():
+    assert set(CLASS_NAMES) == set(ANCHOR_SIZES) == set(MATCH_THRESHOLDS)
+    assert all(pos > neg for pos, neg in MATCH_THRESHOLDS.values())
+    assert match_thresholds(["car", "pedestrian"]) == [(0.6, 0.45), (0.5, 0.35)]
+    with pytest.raises(ValueError, match="no anchor size"):
+        make_anchors(["car", "spaceship"], (2, 2), (0, 0, 0, 1, 1, 1))
+
+
+# ----------------------------------------------------------------------------------------------
+# Head and layout
+# ----------------------------------------------------------------------------------------------
+
+
+def test_head_shapes_prior_and_flatten_layout():
+    head = AnchorHead(in_ch=16, n_classes=3, n_rot=2, code_size=9, n_dir_bins=2)
+    out = head(torch.randn(2, 16, 5, 6))
+    assert out.cls_logits.shape == (2, 6, 5, 6)
+    assert out.box_deltas.shape == (2, 54, 5, 6)
+    assert out.dir_logits.shape == (2, 12, 5, 6)
+    # Focal prior: every anchor starts near score 0.01.
+    assert_close(torch.sigmoid(out.cls_logits).mean(), torch.tensor(0.01), atol=2e-3)
+    flat = out.flatten()
+    assert flat.cls_logits.shape == (2, 180)
+    assert flat.box_deltas.shape == (2, 180, 9) and flat.dir_logits.shape == (2, 180, 2)
+
+    # Channel a * k + j at (iy, ix) -> row (iy * W + ix) * A + a, column j.
+    h, w, a, k = 2, 3, 4, 5
+    ch = torch.arange(a * k).view(a * k, 1, 1)
+    iy = torch.arange(h).view(1, h, 1)
+    ix = torch.arange(w).view(1, 1, w)
+    code = (ch * 100 + iy * 10 + ix).float()[None]  # (1, A * k, H, W)
+    rows = HeadOutput(code[:, :a], code, code[:, : a * 2]).flatten().box_deltas[0]
+    for y in range(h):
+        for x in range(w):
+            for anchor in range(a):
+                for j in range(k):
+                    assert rows[(y * w + x) * a + anchor, j] == (anchor * k + j) * 100 + y * 10 + x
+    assert torch.equal(to_map(rows, h, w, a), code)
+
+
+# ----------------------------------------------------------------------------------------------
+# Assignment
+# ----------------------------------------------------------------------------------------------
+
+
+def test_gt_on_anchor_is_positive_with_zero_residuals_class_aware():
+    names = ("car", "construction_vehicle", "pedestrian")
+    anchors = line_anchors(names)
+    gt = torch.tensor([car(3.5, vx=1.5, vy=-0.5)])
+    targets = assign_targets(anchors, gt, torch.tensor([0]), match_thresholds(names))
+    n = 8 * 3 * 2
+    assert targets.labels.shape == (n,) and targets.box_targets.shape == (n, 9)
+    lab = targets.labels.view(8, 3, 2)
+    # Car anchors at x = 3.5 +- 1: same size, shifted along l, IoU (l - 1) / (l + 1) = 0.64 >= 0.6.
+    expected_car = torch.zeros(8, dtype=torch.long)
+    expected_car[2:5] = 1
+    assert torch.equal(lab[:, 0, 0], expected_car)
+    assert torch.equal(lab[:, 0, 1], torch.zeros(8, dtype=torch.long))  # crossing: IoU 0.27
+    # The construction-vehicle anchor on the car has IoU 0.52 >= its pos 0.5, and is still
+    # background: matching is class-aware.
+    iou_cv = bev_iou(anchors[0, 3, 1, 0][None], gt)
+    assert 0.5 < float(iou_cv) < 0.55
+    assert (lab[:, 1:] == 0).all()
+    row = 3 * 6  # (ix = 3, car, rot 0)
+    assert int(targets.matched_gt[row]) == 0
+    assert_close(targets.box_targets[row], [0, 0, 0, 0, 0, 0, 0, 1.5, -0.5], atol=1e-6)
+    assert_close(targets.box_weights[row], np.ones(9))
+    assert int(targets.dir_targets[row]) == 0
+    assert (targets.cls_weights == 1).all()
+    assert targets.box_weights[targets.labels == 0].abs().sum() == 0
+    assert (targets.matched_gt[targets.labels <= 0] == -1).all()
+
+
+def test_between_thresholds_is_ignored():
+    anchors = line_anchors(("car",))
+    shift = 0.3
+    gt = torch.tensor([car(3.5 + shift, yaw=math.pi)])
+    targets = assign_targets(anchors, gt, torch.tensor([0]), [(0.6, 0.45)])
+    lab = targets.labels.view(8, 2)
+    # Same-size boxes shifted by s along their length: IoU = (l - s) / (l + s).
+    expected = []
+    for ix in range(8):
+        s = abs(3.5 + shift - (ix + 0.5))
+        iou = max(CAR_L - s, 0.0) / (CAR_L + s)
+        expected.append(1 if iou >= 0.6 else (0 if iou < 0.45 else -1))
+    assert expected == [0, 0, -1, 1, 1, -1, 0, 0]  # the case is non-trivial
+    assert lab[:, 0].tolist() == expected
+    assert (lab[:, 1] == 0).all()
+    assert (targets.cls_weights.view(8, 2)[:, 0] == torch.tensor([e >= 0 for e in expected])).all()
+    # Heading pi: residual pi (regression is pi-periodic), direction bin 1.
+    assert_close(targets.box_targets.view(8, 2, 9)[3, 0, 6], torch.tensor(math.pi), atol=1e-6)
+    assert int(targets.dir_targets.view(8, 2)[3, 0]) == 1
+
+
+def test_best_anchor_is_forced_positive():
+    names = ("pedestrian",)
+    anchors = line_anchors(names)
+    l, w, h = ANCHOR_SIZES["pedestrian"]
+    gt = torch.tensor([[3.8, 0.0, -1.0, l, w, h, 0.0, 0.0, 0.0]])
+    iou = bev_iou(anchors.reshape(-1, 7), gt).view(8, 2)
+    assert 0.35 <= float(iou[3, 0]) < 0.5  # best anchor, between thresholds
+    assert float(iou.max()) == float(iou[3, 0])
+    targets = assign_targets(anchors, gt, torch.tensor([0]), match_thresholds(names))
+    lab = targets.labels.view(8, 2)
+    assert int(lab[3, 0]) == 1 and int(targets.matched_gt.view(8, 2)[3, 0]) == 0
+    assert int((targets.labels > 0).sum()) == 1
+    assert int(lab[3, 1]) == -1  # crossing anchor: IoU 0.37, between thresholds, not the best
+
+    # A GT that touches no anchor (off the row) forces nothing: IoU 0 is no match.
+    far = torch.tensor([[3.5, 3.0, -1.0, l, w, h, 0.0, 0.0, 0.0]])
+    targets_far = assign_targets(anchors, far, torch.tensor([0]), match_thresholds(names))
+    assert (targets_far.labels == 0).all()
+
+    # A GT exactly between two anchors: both tie for best and both are forced.
+    gt_mid = torch.tensor([[4.0, 0.0, -1.0, l, w, h, 0.0, 0.0, 0.0]])
+    targets = assign_targets(anchors, gt_mid, torch.tensor([0]), match_thresholds(names))
+    assert torch.nonzero(targets.labels > 0).flatten().tolist() == [3 * 2, 4 * 2]
+
+
+def test_assignment_matches_literal_reference_on_random_scene():
+    """Vectorised assignment == a per-anchor loop written straight from the SECOND rules."""
+    gen = torch.Generator().manual_seed(3)
+    names = ("car", "pedestrian", "barrier")
+    thresholds = match_thresholds(names)
+    anchors = make_anchors(names, (12, 12), (-6.0, -6.0, -5.0, 6.0, 6.0, 3.0))
+    m = 12
+    labels = torch.arange(m) % 3
+    sizes = torch.tensor([ANCHOR_SIZES[n] for n in names])[labels] * (0.8 + 0.4 * torch.rand(m, 1, generator=gen))
+    gt = torch.cat(
+        [
+            torch.rand(m, 2, generator=gen) * 12 - 6,
+            torch.full((m, 1), -1.0),
+            sizes,
+            torch.rand(m, 1, generator=gen) * 2 * math.pi - math.pi,
+            torch.randn(m, 2, generator=gen),
+        ],
+        dim=1,
+    )
+    targets = assign_targets(anchors, gt, labels, thresholds)
+
+    flat = anchors.reshape(-1, 7)
+    cls_of = anchor_class_ids(anchors).tolist()
+    iou = bev_iou(flat, gt).tolist()  # all classes; the loop applies class-awareness
+    best_of_gt = [max((iou[i][j] for i in range(len(flat)) if cls_of[i] == labels[j]), default=0.0) for j in range(m)]
+    for i in range(len(flat)):
+        mine = [j for j in range(m) if labels[j] == cls_of[i]]
+        best = max((iou[i][j] for j in mine), default=0.0)
+        forced = any(iou[i][j] == best_of_gt[j] > 0 for j in mine)
+        pos_thr, neg_thr = thresholds[cls_of[i]]
+        if best >= pos_thr or forced:
+            expected = cls_of[i] + 1
+            assert int(targets.matched_gt[i]) == max(mine, key=lambda j: (iou[i][j], -j))
+        else:
+            expected = 0 if best < neg_thr else -1
+        assert int(targets.labels[i]) == expected, i
+    # The scene exercises every case; GT touching no anchor of their class (a pedestrian between
+    # 2 m cells) stay unmatched, all others get at least their forced anchor.
+    assert {-1, 0, 1, 2, 3} <= set(targets.labels.tolist())
+    touching = {j for j in range(m) if best_of_gt[j] > 0}
+    assert set(targets.matched_gt[targets.positives].tolist()) == touching
+
+
+def test_empty_gt_all_negative_and_unknown_velocity():
+    names = ("car", "pedestrian")
+    anchors = line_anchors(names)
+    targets = assign_targets(anchors, torch.zeros(0, 9), torch.zeros(0, dtype=torch.long), match_thresholds(names))
+    assert (targets.labels == 0).all() and (targets.cls_weights == 1).all()
+    assert (targets.box_weights == 0).all() and (targets.matched_gt == -1).all()
+    # GT of a class the head does not detect (label -1) are ignored: still all negative.
+    other = assign_targets(anchors, torch.tensor([car(3.5)]), torch.tensor([-1]), match_thresholds(names))
+    assert (other.labels == 0).all()
+    # NaN velocity: regressed position etc., but no velocity loss.
+    nan_v = assign_targets(anchors, torch.tensor([car(3.5, vx=float("nan"), vy=float("nan"))]), torch.tensor([0]), match_thresholds(names))
+    pos = nan_v.labels > 0
+    assert pos.any() and torch.isfinite(nan_v.box_targets).all()
+    assert (nan_v.box_weights[pos][:, :7] == 1).all() and (nan_v.box_weights[pos][:, 7:] == 0).all()
+
+
+def test_direction_target_bins():
+    yaw = torch.tensor([0.0, math.pi / 2, math.pi, -math.pi / 2, -0.8, -0.7, 2.3, 2.4, 2 * math.pi])
+    # Bin 0 is [-pi/4, 3pi/4) modulo 2 pi (-pi/4 = -0.785, 3pi/4 = 2.356), bin 1 the rest.
+    assert direction_target(yaw).tolist() == [0, 0, 1, 1, 1, 0, 0, 1, 0]
+
+
+# ----------------------------------------------------------------------------------------------
+# Losses
+# ----------------------------------------------------------------------------------------------
+
+
+def test_focal_loss_hand_computed_and_perfect():
+    logits = torch.tensor([2.0, -1.0, 0.5, 0.0], dtype=torch.float64)
+    targets = torch.tensor([1.0, 0.0, 1.0, 0.0], dtype=torch.float64)
+    expected = []
+    for x, t in zip(logits.tolist(), targets.tolist()):
+        p = 1 / (1 + math.exp(-x))
+        expected.append(-0.25 * (1 - p) ** 2 * math.log(p) if t else -0.75 * p**2 * math.log(1 - p))
+    assert_close(sigmoid_focal_loss(logits, targets), expected, atol=1e-12)
+    # (logit 0, target 0): 0.75 * 0.25 * log 2.
+    assert_close(sigmoid_focal_loss(logits, targets)[3], torch.tensor(0.75 * 0.25 * math.log(2)), atol=1e-12)
+    perfect = sigmoid_focal_loss(torch.tensor([30.0, -30.0]), torch.tensor([1.0, 0.0]))
+    assert float(perfect.max()) < 1e-20
+    assert torch.isfinite(sigmoid_focal_loss(torch.tensor([-200.0]), torch.tensor([1.0]))).all()
+
+
+def test_smooth_l1_and_direction_ce():
+    beta = 1 / 9
+    x = torch.tensor([0.05, -0.05, 1.0, -2.0], dtype=torch.float64)
+    assert_close(smooth_l1(x, beta), [0.5 * 0.0025 / beta] * 2 + [1 - beta / 2, 2 - beta / 2], atol=1e-12)
+    assert_close(smooth_l1(x, 0.0), x.abs())
+    ce = direction_cross_entropy(torch.tensor([[[2.0, 0.0]]]), torch.tensor([[1]]))
+    assert ce.shape == (1, 1)
+    assert_close(ce[0, 0], torch.tensor(math.log(1 + math.exp(2.0))), atol=1e-6)
+
+
+def test_sin_difference_encodes_sine_of_error():
+    a = torch.tensor([0.3, -2.0, 3.0, 1.0], dtype=torch.float64)
+    b = torch.tensor([1.1, 2.5, -3.0, 1.0 + math.pi], dtype=torch.float64)
+    pa, pb = sin_difference(a, b)
+    assert_close(pa - pb, torch.sin(a - b), atol=1e-12)
+
+
+def _single_target_batch():
+    """One car GT (heading pi) on a line of car anchors, and predictions equal to the targets."""
+    anchors = line_anchors(("car",))
+    targets = assign_targets(anchors, torch.tensor([car(3.5, yaw=math.pi, vx=1.0)]), torch.tensor([0]), [(0.6, 0.45)])
+    batch = stack_targets([targets])
+    pos = batch.positives.float()
+    cls = torch.where(batch.positives, 30.0, -30.0)
+    dir_logits = torch.nn.functional.one_hot(batch.dir_targets, 2).float() * 30.0 - 15.0
+    return batch, pos, cls, batch.box_targets.clone(), dir_logits
+
+
+def test_loss_perfect_and_off_by_pi():
+    batch, pos, cls, box, dir_logits = _single_target_batch()
+    assert batch.labels.shape == (1, 16) and int(pos.sum()) == 3
+    perfect = detection_loss(FlatPredictions(cls, box, dir_logits), batch)
+    for key in ("loss", "loss_cls", "loss_reg", "loss_reg_theta", "loss_dir"):
+        assert float(perfect[key]) < 1e-6, key
+    assert float(perfect["num_pos"]) == 3
+
+    # Heading off by exactly pi with the wrong direction bin: the angle loss does not see it
+    # (sin-difference), only the direction classifier does.
+    flipped = box.clone()
+    flipped[..., 6] += math.pi
+    wrong_dir = -dir_logits
+    off = detection_loss(FlatPredictions(cls, flipped, wrong_dir), batch)
+    assert float(off["loss_reg_theta"]) < 1e-6
+    # Logits 30 apart the wrong way: CE ~30 per positive. Negatives (whose dir logits are just
+    # as wrong here) must not count: they have no heading.
+    assert_close(off["loss_dir"], torch.tensor(30.0), atol=1e-4)
+    assert float(off["loss_reg"]) < 1e-6
+    # A quarter-turn error is penalised by the angle term: SmoothL1(sin(pi/2)) per positive.
+    quarter = box.clone()
+    quarter[..., 6] += math.pi / 2
+    q = detection_loss(FlatPredictions(cls, quarter, dir_logits), batch)
+    assert_close(q["loss_reg_theta"], torch.tensor(1 - (1 / 9) / 2), atol=1e-5)
+
+    # Weighted total (eq. 9) and the velocity code weight.
+    vel = box.clone()
+    vel[..., 7] += 1.0  # 1 m/s error on every positive
+    w = LossWeights()
+    v = detection_loss(FlatPredictions(cls, vel, wrong_dir), batch, w)
+    assert_close(v["loss_reg"], torch.tensor(0.2 * (1 - (1 / 9) / 2)), atol=1e-5)
+    total = w.cls * v["loss_cls"] + w.reg * (v["loss_reg"] + v["loss_reg_theta"]) + w.dir * v["loss_dir"]
+    assert_close(v["loss"], total, atol=1e-6)
+
+
+def test_ignored_anchors_do_not_count():
+    anchors = line_anchors(("car",))
+    batch = stack_targets([assign_targets(anchors, torch.tensor([car(3.8)]), torch.tensor([0]), [(0.6, 0.45)])])
+    ignored = batch.labels == -1
+    assert int(ignored.sum()) == 2
+    # Confidently "positive" on the ignored anchors: no classification loss there.
+    cls = torch.where(batch.positives | ignored, 30.0, -30.0)
+    dir_logits = torch.nn.functional.one_hot(batch.dir_targets, 2).float() * 30.0
+    losses = detection_loss(FlatPredictions(cls, batch.box_targets, dir_logits), batch)
+    assert float(losses["loss_cls"]) < 1e-6 and float(losses["loss"]) < 1e-6
+
+
+# ----------------------------------------------------------------------------------------------
+# Decoding
+# ----------------------------------------------------------------------------------------------
+
+
+def test_decode_of_encoded_targets_returns_gt_after_nms():
+    names = ("car", "pedestrian")
+    ny, nx = 4, 16
+    anchors = make_anchors(names, (ny, nx), (0.0, 0.0, -5.0, 16.0, 16.0, 3.0))  # 1 m x 4 m cells
+    pl, pw, ph = ANCHOR_SIZES["pedestrian"]
+    gt = torch.tensor(
+        [
+            car(3.7, 6.0, yaw=math.pi + 0.1, vx=2.0, vy=-1.0, l=4.9),  # heading in bin 1
+            car(10.5, 2.0, yaw=-3.0, vx=-0.5, vy=0.25),  # bin 1 as well, wraps below -pi
+            [13.5, 14.0, -1.0, pl * 1.1, pw, ph, math.pi / 2 + 0.05, 0.3, 0.0],  # on a pi/2 anchor
+        ]
+    )
+    labels = torch.tensor([0, 0, 1])
+    targets = assign_targets(anchors, gt, labels, match_thresholds(names))
+    pos = targets.positives
+    assert int(pos.sum()) > 3  # several anchors per car: duplicates for NMS to remove
+    assert (targets.matched_gt[pos] >= 0).all()
+
+    n_anchors = len(names) * 2
+    cls = torch.where(pos, 8.0, -8.0)[:, None]
+    dir_logits = torch.nn.functional.one_hot(targets.dir_targets, 2).float() * 8.0
+    out = HeadOutput(
+        to_map(cls, ny, nx, n_anchors),
+        to_map(targets.box_targets, ny, nx, n_anchors),
+        to_map(dir_logits, ny, nx, n_anchors),
+    )
+    # A second sample with nothing in it.
+    empty = HeadOutput(*(torch.cat([t, torch.full_like(t, -8.0)]) for t in (out.cls_logits, out.box_deltas, out.dir_logits)))
+    dets = decode(empty.cls_logits, empty.box_deltas, empty.dir_logits, anchors, score_thr=0.3, nms_iou=0.2, max_per_sample=50, pre_nms=100)
+    assert len(dets) == 2
+    boxes, scores, det_labels = dets[0]
+    assert boxes.shape == (3, 9)
+    assert_close(scores, np.full(3, 1 / (1 + math.exp(-8.0))), atol=1e-6)
+    order = torch.argsort(boxes[:, 0])
+    boxes, det_labels = boxes[order], det_labels[order]
+    assert det_labels.tolist() == [0, 0, 1]
+    assert_close(boxes[:, :6], gt[:, :6], atol=1e-5)
+    assert_close(boxes[:, 7:], gt[:, 7:], atol=1e-5)
+    # Full heading recovered (not just modulo pi), compared modulo 2 pi.
+    dyaw = torch.remainder(boxes[:, 6] - gt[:, 6] + math.pi, 2 * math.pi) - math.pi
+    assert_close(dyaw, np.zeros(3), atol=1e-5)
+    assert ((boxes[:, 6] >= -math.pi / 4 - 1e-6) & (boxes[:, 6] < 7 * math.pi / 4)).all()
+    assert dets[1].boxes.shape == (0, 9) and dets[1].labels.shape == (0,)
+
+    # Wild size residuals of an untrained head stay finite (clamped log ratios).
+    wild = decode(out.cls_logits, torch.full_like(out.box_deltas, 100.0), out.dir_logits, anchors, 0.3, 0.2, 50, 100)[0]
+    assert wild.boxes.shape[0] > 0 and torch.isfinite(wild.boxes).all()
+
+    # Flipping the direction bins turns every heading by pi.
+    flipped = decode(out.cls_logits, out.box_deltas, -out.dir_logits, anchors, 0.3, 0.2, 50, 100)[0]
+    fb = flipped.boxes[torch.argsort(flipped.boxes[:, 0])]
+    dyaw = torch.remainder(fb[:, 6] - gt[:, 6], 2 * math.pi)
+    assert_close(dyaw, np.full(3, math.pi), atol=1e-5)
+
+    # Without NMS suppression (threshold 1) every positive anchor comes back.
+    all_pos = decode(out.cls_logits, out.box_deltas, out.dir_logits, anchors, 0.3, 1.0, 500, 1000)[0]
+    assert all_pos.boxes.shape[0] == int(pos.sum())
+
+
+# ----------------------------------------------------------------------------------------------
+# End to end
+# ----------------------------------------------------------------------------------------------
+
+
+def test_gradients_reach_all_head_parameters():
+    torch.manual_seed(0)
+    names = ("car", "pedestrian", "barrier")
+    ny, nx = 8, 8
+    anchors = make_anchors(names, (ny, nx), (-8.0, -8.0, -5.0, 8.0, 8.0, 3.0))
+    head = AnchorHead(in_ch=8, n_classes=3)
+    bev = torch.randn(2, 8, ny, nx)
+    l, w, h = ANCHOR_SIZES["barrier"]
+    gt = torch.tensor([car(1.0, 1.0, yaw=0.4, vx=1.0), [-3.0, 4.0, -1.3, l, w, h, 1.2, 0.0, 0.0]])
+    targets = stack_targets(
+        [
+            assign_targets(anchors, gt, torch.tensor([0, 2]), match_thresholds(names)),
+            assign_targets(anchors, torch.zeros(0, 9), torch.zeros(0, dtype=torch.long), match_thresholds(names)),
+        ]
+    )
+    assert isinstance(targets, Targets) and targets.labels.shape == (2, ny * nx * 6)
+    losses = detection_loss(head(bev), targets)
+    assert all(torch.isfinite(v) for v in losses.values())
+    assert float(losses["num_pos"]) >= 2 and float(losses["loss"].detach()) > 0
+    losses["loss"].backward()
+    for name, param in head.named_parameters():
+        assert param.grad is not None and torch.isfinite(param.grad).all(), name
+        assert float(param.grad.abs().sum()) > 0, name
+
+    out = head(bev)
+    dets = decode(out.cls_logits, out.box_deltas, out.dir_logits, anchors, score_thr=0.0, nms_iou=0.5, max_per_sample=20, pre_nms=64)
+    assert len(dets) == 2
+    for d in dets:
+        assert d.boxes.shape[1] == 9 and d.boxes.shape[0] == d.scores.shape[0] == d.labels.shape[0] <= 20
+        assert (d.scores[:-1] >= d.scores[1:]).all()
