@@ -4,9 +4,10 @@ This is the only module that knows OpenGL camera axes (x right, y up, looking al
 other module uses the nuScenes camera frame (x right, y down, z forward); the conversion is
 ``T_gl_from_cv`` below.
 
-Shading is Lambertian (ambient plus a sun), evaluated per face on the CPU and baked into the
-face colours; the GPU pass is then pyrender's unlit FLAT pass. On a software rasteriser
-(llvmpipe) this is several times faster than pyrender's PBR shader and shows shape just as well.
+Shading is Lambertian (ambient plus a sun), evaluated per face on the CPU; the GPU pass is
+pyrender's unlit FLAT pass drawing face indices (see :class:`Renderer`). On a software
+rasteriser (llvmpipe) this is several times faster than pyrender's PBR shader and its separate
+segmentation pass, and shows shape just as well.
 Actors whose bounding sphere is outside a camera's view are not drawn.
 
 The platform is EGL by default and OSMesa as the fallback (``--gl osmesa`` or the environment
@@ -30,6 +31,25 @@ SKY = (0.62, 0.74, 0.88)
 GL_PLATFORMS = ("egl", "osmesa")
 
 
+def _single_sample_framebuffers(renderer_module) -> None:
+    """Make pyrender's offscreen framebuffers single-sample.
+
+    pyrender renders into a 4x multisample framebuffer and resolves it with GL_LINEAR, which
+    averages the id colours of the segmentation pass at every object edge into ids of other
+    objects; the id pass must be exact. It is also most of the cost on a software rasteriser.
+    Samples = 0 asks GL for an ordinary renderbuffer, so the resolve becomes a plain copy.
+    """
+    original = renderer_module.glRenderbufferStorageMultisample
+    if getattr(original, "_simgen_single_sample", False):
+        return
+
+    def storage(target, samples, internal_format, width, height):
+        return original(target, 0, internal_format, width, height)
+
+    storage._simgen_single_sample = True
+    renderer_module.glRenderbufferStorageMultisample = storage
+
+
 def select_platform(platform: str | None) -> str:
     """Choose the OpenGL platform before anything imports OpenGL."""
     chosen = platform or os.environ.get("PYOPENGL_PLATFORM") or "egl"
@@ -40,23 +60,31 @@ def select_platform(platform: str | None) -> str:
 
 
 def encode_ids(ids: np.ndarray) -> np.ndarray:
-    """(n,) non-negative int ids -> (n, 3) uint8 colours for the segmentation pass."""
+    """(n,) non-negative ints below 2^24 -> (n, 3) uint8 colours that carry them exactly."""
     ids = np.asarray(ids, dtype=np.int64)
     return np.stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255], -1).astype(np.uint8)
 
 
 def decode_ids(rgb: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8 segmentation image -> (H, W) int32 ids."""
-    rgb = rgb.astype(np.int32)
+    """(..., 3) uint8 colours from :func:`encode_ids` -> (...) int64."""
+    rgb = rgb.astype(np.int64)
     return rgb[..., 0] | (rgb[..., 1] << 8) | (rgb[..., 2] << 16)
 
 
 class Renderer:
-    """Holds one OffscreenRenderer and the pyrender scene of the current world."""
+    """Holds one OffscreenRenderer and the pyrender scene of the current world.
+
+    One unlit pass per camera draws every face in a colour that encodes its index in the
+    world's face table (0 = sky). Looking the indices up gives the shaded rgb image and the
+    actor id per pixel at once, both exact: there is no second segmentation pass and no colour
+    is ever blended (the framebuffers are single-sample).
+    """
 
     def __init__(self, cfg: CameraConfig, platform: str | None = None):
         select_platform(platform)
         import pyrender  # noqa: deferred on purpose, see the module docstring
+        import pyrender.renderer
+        _single_sample_framebuffers(pyrender.renderer)
         self._pr = pyrender
         self.cfg = cfg
         self.width, self.height = cfg.resolution
@@ -70,41 +98,50 @@ class Renderer:
             self._gl = None
 
     def set_world(self, world: World, key) -> None:
-        """Build the pyrender scene for ``world`` (skipped when ``key`` is unchanged)."""
+        """Build the pyrender scene and the face tables of ``world`` (skipped when ``key`` is unchanged)."""
         if key == self._world_key:
             return
         pr = self._pr
         sun_az = float(world.meta.get("sun_azimuth", 0.8))
         sun_el = float(world.meta.get("sun_elevation", 0.9))
         sun = np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])
-        scene = pr.Scene(ambient_light=np.zeros(3), bg_color=(*SKY, 1.0))
-        self.static_node = scene.add(pr.Mesh.from_trimesh(self._shaded(world.static_mesh, sun), smooth=False))
-        self.actor_nodes, radius = {}, {}
+        scene = pr.Scene(ambient_light=np.zeros(3), bg_color=(0.0, 0.0, 0.0, 1.0))   # black = index 0 = sky
+        colours, owners = [np.array([[int(255 * c) for c in SKY]], np.uint8)], [np.zeros(1, np.int32)]
+        n_faces = 1
+
+        def add(mesh, sun_local, owner):
+            nonlocal n_faces
+            colours.append(self._shaded(mesh, sun_local))
+            owners.append(np.full(len(mesh.faces), owner, np.int32))
+            coded = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+            coded.visual.face_colors = np.concatenate(
+                [encode_ids(n_faces + np.arange(len(mesh.faces))), np.full((len(mesh.faces), 1), 255, np.uint8)], 1)
+            n_faces += len(mesh.faces)
+            return scene.add(pr.Mesh.from_trimesh(coded, smooth=False))
+
+        import trimesh
+        add(world.static_mesh, sun, 0)
+        self.actor_nodes, self.radius = {}, {}
         for a, yaw in zip(world.actors, world.yaw):
             if a.annotate:  # the ego is not rendered: no returns or pixels from the own car
                 c, s = np.cos(yaw), np.sin(yaw)
                 sun_box = np.array([c * sun[0] + s * sun[1], -s * sun[0] + c * sun[1], sun[2]])  # yaw is constant
-                self.actor_nodes[a.id] = scene.add(pr.Mesh.from_trimesh(self._shaded(a.mesh, sun_box), smooth=False))
-                radius[a.id] = float(np.linalg.norm(a.size)) / 2
-        self.radius = radius
+                self.actor_nodes[a.id] = add(a.mesh, sun_box, a.id)
+                self.radius[a.id] = float(np.linalg.norm(a.size)) / 2
+        if n_faces >= 2 ** 24:
+            raise ValueError(f"{n_faces} faces do not fit the 24-bit face index of the id pass")
+        self.face_rgb = np.concatenate(colours)
+        self.face_owner = np.concatenate(owners)
         self.cam_node = scene.add(pr.IntrinsicsCamera(1, 1, 0, 0, znear=0.1, zfar=self.cfg.zfar))
-        self.seg_map = {self.static_node: (0, 0, 0)}
-        for aid, node in self.actor_nodes.items():
-            self.seg_map[node] = tuple(int(c) for c in encode_ids([aid])[0])
         self.scene = scene
         self._world_key = key
 
-    def _shaded(self, mesh, sun: np.ndarray):
-        """A copy of ``mesh`` whose face colours carry ambient + sun * max(0, n . sun)."""
-        import trimesh
+    def _shaded(self, mesh, sun: np.ndarray) -> np.ndarray:
+        """(F, 3) uint8 face colours lit by ambient + sun * max(0, n . sun)."""
         normals = np.asarray(mesh.face_normals)
         light = self.cfg.ambient + self.cfg.sun_intensity / 5.0 * np.clip(normals @ sun, 0.0, None)
-        albedo = np.asarray(mesh.visual.face_colors, np.float64)
-        colors = albedo.copy()
-        colors[:, :3] = np.clip(albedo[:, :3] * light[:, None], 0, 255)
-        out = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-        out.visual.face_colors = colors.astype(np.uint8)
-        return out
+        albedo = np.asarray(mesh.visual.face_colors, np.float64)[:, :3]
+        return np.clip(albedo * light[:, None], 0, 255).astype(np.uint8)
 
     def render(self, cam: Camera, T_global_from_cam: np.ndarray, actor_poses: dict[int, np.ndarray]):
         """Render one camera.
@@ -132,9 +169,10 @@ class Renderer:
             node.mesh.is_visible = bool(vis)
             if vis:
                 self.scene.set_pose(node, actor_poses[aid])
-        rgb, depth = self._gl.render(self.scene, flags=pr.RenderFlags.FLAT)
-        seg, _ = self._gl.render(self.scene, flags=pr.RenderFlags.SEG, seg_node_map=self.seg_map)
-        return np.ascontiguousarray(rgb[..., :3]), depth.astype(np.float32), decode_ids(seg)
+        coded, depth = self._gl.render(self.scene, flags=pr.RenderFlags.FLAT | pr.RenderFlags.RGBA)
+        # RGBA bytes read as one little-endian uint32 per pixel: R | G << 8 | B << 16 | A << 24.
+        face = np.ascontiguousarray(coded).view(np.uint32)[..., 0] & 0xFFFFFF
+        return self.face_rgb[face], depth.astype(np.float32), self.face_owner[face]
 
     def _in_view(self, cam: Camera, T_global_from_cam, centres, radius) -> np.ndarray:
         """Whether each bounding sphere may touch the view frustum (conservative)."""
