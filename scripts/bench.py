@@ -98,7 +98,7 @@ def bench_make(quick: bool) -> dict:
         tmp = Path(tmp)
         samples = 4 if quick else 10
         sample_s = run_make(tmp / "one", 1, samples, 1, "1600x900") / samples
-        n, k, res = (2, 2, "800x450") if quick else (4, 4, "800x450")
+        n, k, res = (2, 2, "800x450") if quick else (4, 6, "800x450")
         t1 = run_make(tmp / "w1", n, k, 1, res)
         t2 = run_make(tmp / "w2", n, k, 2, res)
     return {"sample_s_1600x900": sample_s, "make_speedup_2_workers": t1 / t2,

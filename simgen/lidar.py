@@ -24,6 +24,7 @@ from .world import World
 N_BEAMS = 32
 ELEVATIONS_DEG = np.linspace(-30.67, 10.67, N_BEAMS)   # 1.33 deg apart; ring 0 is the lowest
 SWEEP_PERIOD = 0.05
+ATLAS_SPACING = 500.0   # metres between actor copies in the atlas: far beyond any candidate ray's reach
 
 try:
     import embreex  # noqa: F401
@@ -143,10 +144,12 @@ class ActorMeshes:
 class LidarScanner:
     """Ray-casts sweeps of one world.
 
-    The static world and the actors that never move share one BVH, built once. Each moving actor
-    has its own BVH in its box frame, also built once: per sweep, only the rays whose azimuth
-    comes near the actor are moved into its frame and cast, which is much cheaper than
-    rebuilding a BVH of all moving actors for every sweep.
+    The static world and the actors that never move share one BVH, built once. The moving
+    actors share a second BVH, also built once: an "atlas" holding each actor's mesh in its own
+    box frame, the copies ``ATLAS_SPACING`` apart. Per sweep, the rays whose azimuth comes near an
+    actor are moved into that actor's box frame (plus its atlas offset) and all of them are cast
+    in one call; a hit counts only on the intended actor's copy. Rebuilding a BVH of the posed
+    actors for every sweep would cost several times more than the casting itself.
     """
 
     def __init__(self, cfg: LidarConfig, world: World):
@@ -173,7 +176,10 @@ class LidarScanner:
         self.static = RayTarget(trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False),
                                 np.concatenate([sm.metadata["reflectivity"], statics.refl]))
         self.static_ids = np.concatenate([np.zeros(len(sm.faces), np.int32), statics.ids[statics.face_owner]])
-        self._actor_rays = {}
+        self.sensor_height = float(self.T_ego_from_lidar[2, 3])
+        self.ring_elevation = np.deg2rad(ELEVATIONS_DEG)
+        self.mover_ids = np.array([world.actors[i].id for i in self.moving_idx], np.int32)
+        self._build_atlas()
 
     def rays_global(self, t_ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Origins and unit directions (m, 3), global frame, of rays fired at times ``t_ray``.
@@ -193,14 +199,63 @@ class LidarScanner:
         b = self.world.boxes_at(t)[idx]
         return geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
 
-    def _actor_intersector(self, i: int):
-        if i not in self._actor_rays:
+    def _build_atlas(self) -> None:
+        """One BVH of every moving actor's mesh in its box frame, each at its own offset."""
+        k = len(self.moving_idx)
+        side = max(1, int(np.ceil(k ** (1 / 3))))
+        cell = np.stack(np.unravel_index(np.arange(k), (side, side, side)), 1)
+        self.atlas_offset = cell * ATLAS_SPACING                              # (k, 3)
+        verts, faces, owner, refl, n = [], [], [], [], 0
+        for j, i in enumerate(self.moving_idx):
             mesh = self.world.actors[i].mesh
-            self._actor_rays[i] = RayTarget(mesh, mesh.metadata["reflectivity"])
-        return self._actor_rays[i]
+            verts.append(np.asarray(mesh.vertices) + self.atlas_offset[j])
+            faces.append(np.asarray(mesh.faces) + n)
+            owner.append(np.full(len(mesh.faces), j))
+            refl.append(mesh.metadata["reflectivity"])
+            n += len(mesh.vertices)
+        if k == 0:
+            self.atlas = None
+            return
+        self.atlas = RayTarget(trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False),
+                               np.concatenate(refl))
+        self.atlas_owner = np.concatenate(owner)
+
+    def _cast_movers(self, t_end, origin, dirs, sensor_xy, ego_yaw, dist, rho, ids, normals) -> None:
+        """Cast the rays near each moving actor against the atlas; update the hits in place."""
+        if self.atlas is None:
+            return
+        boxes = self.world.boxes_at(t_end)[self.moving_idx]
+        far = np.hypot(*(boxes[:, :2] - sensor_xy).T) > self.cfg.max_range + np.hypot(boxes[:, 3], boxes[:, 4])
+        rays, owner = [], []
+        for j in np.nonzero(~far)[0]:
+            r = self._candidate_rays(boxes[j], sensor_xy, ego_yaw)
+            rays.append(r)
+            owner.append(np.full(len(r), j))
+        if not rays:
+            return
+        rays, owner = np.concatenate(rays), np.concatenate(owner)
+        b = boxes[owner]
+        c, s = np.cos(b[:, 6]), np.sin(b[:, 6])
+        rel = origin[rays] - b[:, :3]
+        # Into each actor's box frame (rotation about z by -yaw), then to its atlas copy.
+        o_local = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]], 1)
+        d = dirs[rays]
+        d_local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], 1)
+        d_hit, tri = self.atlas.first_hits(o_local + self.atlas_offset[owner], d_local)
+        ok = (tri >= 0) & (self.atlas_owner[np.maximum(tri, 0)] == owner) & (d_hit < dist[rays])
+        # Several actors may be hit by one ray: write the farthest first so the nearest wins.
+        sel = np.nonzero(ok)[0]
+        sel = sel[np.argsort(-d_hit[sel], kind="stable")]
+        r, t, j = rays[sel], tri[sel], owner[sel]
+        dist[r] = d_hit[sel]
+        rho[r] = self.atlas.reflectivity[t]
+        ids[r] = self.mover_ids[j]
+        n = self.atlas.normals[t]
+        normals[r] = np.stack([c[sel] * n[:, 0] - s[sel] * n[:, 1], s[sel] * n[:, 0] + c[sel] * n[:, 1], n[:, 2]], 1)
 
     def _candidate_rays(self, box: np.ndarray, sensor_xy: np.ndarray, ego_yaw: float) -> np.ndarray:
-        """Indices of the rays whose azimuth passes within reach of ``box`` during the sweep."""
+        """Indices of the rays that can pass within reach of ``box`` during the sweep: the
+        columns whose azimuth and the rings whose elevation come near its bounding cylinder."""
         rel = box[:2] - sensor_xy
         d = np.hypot(*rel)
         r = np.hypot(box[3], box[4]) / 2 + 1.0     # + how far the sensor moves in one sweep
@@ -211,7 +266,15 @@ class LidarScanner:
         c0 = int(np.floor((centre - half / (2 * np.pi)) * self.n_az))
         c1 = int(np.ceil((centre + half / (2 * np.pi)) * self.n_az))
         cols = np.arange(c0, c1 + 1) % self.n_az
-        return (cols[:, None] * N_BEAMS + np.arange(N_BEAMS)).ravel()
+        # Elevations under which the cylinder's bottom and top are seen from the sensor height.
+        dz_lo = box[2] - box[5] / 2 - self.sensor_height
+        dz_hi = box[2] + box[5] / 2 - self.sensor_height
+        d_near, d_far = d - r, d + r
+        el_lo = np.arctan2(dz_lo, d_near if dz_lo < 0 else d_far)
+        el_hi = np.arctan2(dz_hi, d_near if dz_hi > 0 else d_far)
+        margin = np.deg2rad(1.6)                    # the mount tilt, and then some
+        rings = np.nonzero((self.ring_elevation >= el_lo - margin) & (self.ring_elevation <= el_hi + margin))[0]
+        return (cols[:, None] * N_BEAMS + rings).ravel()
 
     def scan(self, t_end: float, rng: np.random.Generator) -> Sweep:
         """Cast one sweep ending at ``t_end`` (s). ``rng`` draws the range noise."""
@@ -229,22 +292,7 @@ class LidarScanner:
         T_end = self.world.ego_pose(t_end)
         sensor_xy = (T_end @ self.T_ego_from_lidar)[:2, 3]
         ego_yaw = float(np.arctan2(T_end[1, 0], T_end[0, 0]))
-        boxes = self.world.boxes_at(t_end)
-        for i in self.moving_idx:
-            b = boxes[i]
-            if np.hypot(*(b[:2] - sensor_xy)) > cfg.max_range + np.hypot(b[3], b[4]):
-                continue
-            rays = self._candidate_rays(b, sensor_xy, ego_yaw)
-            T_box = geo.pose_2d(b[0], b[1], b[6], b[2])
-            R, t = T_box[:3, :3], T_box[:3, 3]
-            target = self._actor_intersector(i)
-            d_i, tri_i = target.first_hits((origin[rays] - t) @ R, dirs[rays] @ R)
-            closer = d_i < dist[rays]
-            sel, tri_i = rays[closer], tri_i[closer]
-            dist[sel] = d_i[closer]
-            rho[sel] = target.reflectivity[tri_i]
-            ids[sel] = self.world.actors[i].id
-            normals[sel] = target.normals[tri_i] @ R.T
+        self._cast_movers(t_end, origin, dirs, sensor_xy, ego_yaw, dist, rho, ids, normals)
         cos_inc = np.abs(np.einsum("md,md->m", normals, dirs))
         meas = dist + cfg.range_noise_sigma * rng.standard_normal(len(dist))
         with np.errstate(invalid="ignore", divide="ignore"):
