@@ -21,6 +21,7 @@ import os
 
 import numpy as np
 
+from . import geometry as geo
 from .config import CameraConfig
 from .rig import Camera
 from .world import World
@@ -112,7 +113,7 @@ class Renderer:
         def add(mesh, sun_local, owner):
             nonlocal n_faces
             colours.append(self._shaded(mesh, sun_local))
-            owners.append(np.full(len(mesh.faces), owner, np.int32))
+            owners.append(np.broadcast_to(np.asarray(owner, np.int32), (len(mesh.faces),)))
             coded = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
             coded.visual.face_colors = np.concatenate(
                 [encode_ids(n_faces + np.arange(len(mesh.faces))), np.full((len(mesh.faces), 1), 255, np.uint8)], 1)
@@ -120,10 +121,23 @@ class Renderer:
             return scene.add(pr.Mesh.from_trimesh(coded, smooth=False))
 
         import trimesh
-        add(world.static_mesh, sun, 0)
+        # Actors that never move join the static world in one node (fewer draw calls); their
+        # faces still carry their own ids through the face table.
+        moving = world.speed.max(axis=1) > 0
+        boxes = world.boxes_at(0.0)
+        parts, part_owner = [world.static_mesh], [np.zeros(len(world.static_mesh.faces), np.int32)]
+        for i, a in enumerate(world.actors):
+            if a.annotate and not moving[i]:
+                m = a.mesh.copy()
+                m.apply_transform(geo.pose_2d(boxes[i, 0], boxes[i, 1], boxes[i, 6], boxes[i, 2]))
+                parts.append(m)
+                part_owner.append(np.full(len(m.faces), a.id, np.int32))
+        merged = trimesh.util.concatenate(parts)
+        add(merged, sun, np.concatenate(part_owner))
         self.actor_nodes, self.radius = {}, {}
-        for a, yaw in zip(world.actors, world.yaw):
-            if a.annotate:  # the ego is not rendered: no returns or pixels from the own car
+        for i, (a, yaw) in enumerate(zip(world.actors, world.yaw)):
+            # The ego is not rendered (no pixels of the own car); static actors are merged above.
+            if a.annotate and moving[i]:
                 c, s = np.cos(yaw), np.sin(yaw)
                 sun_box = np.array([c * sun[0] + s * sun[1], -s * sun[0] + c * sun[1], sun[2]])  # yaw is constant
                 self.actor_nodes[a.id] = add(a.mesh, sun_box, a.id)
