@@ -8,7 +8,8 @@ Medians over repeats, because machines are shared and noisy. Keys (simgen):
   sample_s_1600x900             one worker, a whole sample (6 cameras, 10 sweeps, labels, writing)
   make_speedup_2_workers        `make` wall time with 1 worker / with 2 workers
   worker_peak_rss_mb            peak RSS of a make worker over many scenes
-  worker_rss_growth_mb          RSS after the last scene minus after the first (0 = no leak)
+  worker_rss_growth_mb          RSS after the last scene minus after the second (the first scene
+                                warms caches up); about 0 when nothing leaks
 """
 from __future__ import annotations
 
@@ -125,7 +126,7 @@ print(json.dumps({"rss": rss, "peak": resource.getrusage(resource.RUSAGE_SELF).r
         proc = subprocess.run([sys.executable, "-c", code, tmp, str(n)], check=True, cwd=ROOT,
                               capture_output=True, text=True)
     r = json.loads(proc.stdout.strip().splitlines()[-1])
-    return {"worker_peak_rss_mb": r["peak"], "worker_rss_growth_mb": r["rss"][-1] - r["rss"][0],
+    return {"worker_peak_rss_mb": r["peak"], "worker_rss_growth_mb": r["rss"][-1] - r["rss"][1],
             "worker_rss_per_scene_mb": [round(v) for v in r["rss"]]}
 
 
