@@ -319,10 +319,10 @@ def test_cuda_matches_cpu() -> None:
     a, b = iou_case_pairs(rng)
     ta, tb = torch.tensor(a), torch.tensor(b)
     cpu = bev_iou_aligned(ta, tb)
-    gpu = bev_iou_aligned(ta.cuda(), tb.cuda())
+    gpu = bev_iou_aligned(ta.to("cuda"), tb.to("cuda"))
     assert gpu.device.type == "cuda"
     assert_close(gpu.cpu(), cpu, atol=1e-9, rtol=0)
     scores = torch.tensor(rng.uniform(0, 1, len(a)))
-    kept_gpu = rotated_nms(ta.cuda(), scores.cuda(), 0.3)
+    kept_gpu = rotated_nms(ta.to("cuda"), scores.to("cuda"), 0.3)
     assert kept_gpu.device.type == "cuda"
     assert kept_gpu.cpu().tolist() == rotated_nms(ta, scores, 0.3).tolist()

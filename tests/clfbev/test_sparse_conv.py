@@ -164,6 +164,6 @@ def test_cuda_matches_cpu():
         _, xc, _ = random_grid()
         _, xg, _ = random_grid(device="cuda")
         oc = conv(xc)
-        og = conv.cuda()(xg)
+        og = conv.to("cuda")(xg)
         assert torch.equal(oc.coords, og.coords.cpu())
         torch.testing.assert_close(oc.features, og.features.cpu(), **TOL)

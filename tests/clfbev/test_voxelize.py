@@ -127,6 +127,6 @@ def test_deterministic_and_order_invariant_counts():
 def test_cuda_matches_cpu():
     points, batch_idx = random_points(seed=4)
     a = voxelize(points, batch_idx, PC_RANGE, VOXEL, 3, 20)
-    g = voxelize(points.cuda(), batch_idx.cuda(), PC_RANGE, VOXEL, 3, 20)
+    g = voxelize(points.to("cuda"), batch_idx.to("cuda"), PC_RANGE, VOXEL, 3, 20)
     assert torch.equal(a.features, g.features.cpu()) and torch.equal(a.coords, g.coords.cpu())
     assert torch.equal(a.num_points, g.num_points.cpu())
