@@ -177,7 +177,7 @@ def _buildings(p: Parts, grid: Grid, rng: np.random.Generator) -> None:
 def _clutter(p: Parts, grid: Grid, rng: np.random.Generator) -> np.ndarray:
     """Poles, trees and bins along the curb side of every sidewalk. Returns (s, 7) footprints."""
     cfg = grid.cfg
-    hw, sw = grid.road_half_width, cfg.sidewalk_width
+    hw = grid.road_half_width
     W, H = grid.extent
     boxes = []
     for horizontal, centres, cross, length in ((True, grid.ys, grid.xs, W), (False, grid.xs, grid.ys, H)):

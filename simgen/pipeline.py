@@ -22,7 +22,7 @@ from . import rig
 from . import writer as W
 from .config import ConfigError, SceneConfig
 from .lidar import LidarScanner
-from .scene import KEYFRAME_PERIOD, SWEEPS_PER_KEYFRAME, keyframe_times, sample_world, sweep_end_times
+from .scene import SWEEPS_PER_KEYFRAME, keyframe_times, sample_world, sweep_end_times
 from .world import CATEGORY, World
 
 ANNOTATION_RANGE = 80.0

@@ -238,7 +238,7 @@ def test_points_in_box_mask_boundary_inclusive():
 def test_project_optical_axis_and_hand_computed_point():
     cam = {c.channel: c for c in rig.cameras()}["CAM_FRONT"]
     K = cam.K
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    cx, cy = K[0, 2], K[1, 2]
     uv, z = geo.project(K, np.array([[0.0, 0.0, 7.5], [0.0, 0.0, 123.0]]))
     np.testing.assert_allclose(uv, [[cx, cy], [cx, cy]], atol=1e-9)
     np.testing.assert_allclose(z, [7.5, 123.0])
