@@ -210,8 +210,9 @@ def _key_frame(s, world: World, renderer, cams, calib, rec, add_sample_data, cam
     rec["sample_annotation"].extend(anns)
 
 
-def _worker_init(gl, threads):
-    os.environ["LP_NUM_THREADS"] = str(threads)   # llvmpipe: share the cores between workers
+def _worker_init(gl):
+    # llvmpipe keeps its default thread count in every worker: measured, 2 workers with 2 render
+    # threads each finish sooner here than with 1 each (33.8 s against 36.7 s, 4 scenes).
     if gl:
         os.environ["PYOPENGL_PLATFORM"] = gl
 
@@ -252,8 +253,7 @@ def make(s: MakeSettings, dataroot: Path, workers: int, progress: bool = True) -
         pool = None
     else:
         ctx = mp.get_context("spawn")
-        pool = ctx.Pool(min(workers, len(todo)), initializer=_worker_init,
-                        initargs=(s.gl, max(1, (os.cpu_count() or 1) // workers)))
+        pool = ctx.Pool(min(workers, len(todo)), initializer=_worker_init, initargs=(s.gl,))
         results = pool.imap_unordered(_task, tasks)
     try:
         for _idx, n in results:
