@@ -31,12 +31,16 @@ def _template(kind: str, sections: int = SECTIONS, subdivisions: int = 1) -> tup
 
 
 def _rotation_z_to(direction: np.ndarray) -> np.ndarray:
-    """A rotation taking +z to the unit vector ``direction``."""
+    """A rotation taking +z to the unit vector along ``direction`` (columns x, y, z)."""
     z = direction / np.linalg.norm(direction)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z], 1)
+    # x = normalise(helper x z), written out: np.cross is slow on single vectors.
+    if abs(z[0]) < 0.9:      # helper (1, 0, 0)
+        x = np.array([0.0, -z[2], z[1]])
+    else:                    # helper (0, 1, 0)
+        x = np.array([z[2], 0.0, -z[0]])
+    x /= np.sqrt(x @ x)
+    y = np.array([z[1] * x[2] - z[2] * x[1], z[2] * x[0] - z[0] * x[2], z[0] * x[1] - z[1] * x[0]])
+    return np.stack([x, y, z], 1)
 
 
 class Parts:

@@ -1,0 +1,362 @@
+"""nuScenes-format dataset -> typed ``Sample`` / ``Batch`` for CL-FusionBEV.
+
+Reads any nuScenes-format dataroot (real nuScenes or one written by ``simgen``) through
+nuscenes-devkit; it knows nothing about how the data were made.
+
+Frames and conventions
+----------------------
+- Everything a model sees is in the KEY-FRAME lidar frame (the LIDAR_TOP sensor frame at the
+  sample's lidar timestamp): points, boxes, and the camera extrinsics ``T_lidar_from_cam``.
+- Every sensor record has its own ego pose (camera and lidar fire at different timestamps), so a
+  sensor-to-sensor transform always goes through the global frame:
+  ``T_global_from_X = T_global_from_ego(X's ego pose) @ T_ego_from_X(calibrated_sensor)``.
+- Pixel coordinates use the pixel-edge convention (pixel c covers [c, c + 1)), as in
+  :mod:`clfbev.camera_encoder`. ``intrinsics`` is the calibrated K of the ORIGINAL image and
+  ``img_aug`` maps original pixels to the pixels of the image the network sees; here it is the
+  resize ``A = diag(W'/W, H'/H, 1)``, exact in this convention. So a lidar point projects to
+  ``[u', v', 1] ~ img_aug @ intrinsics @ T_cam_from_lidar @ p`` (``A K`` is the K of the resized
+  image). The camera encoder composes ``img_aug @ intrinsics`` itself, so K is not pre-scaled.
+- Boxes are ``(x, y, z, l, w, h, yaw)`` (+ ``vx, vy``) as in :mod:`clfbev.ops.boxes`;
+  :func:`box_to_lidar` and :func:`box_lidar_to_global` are the only crossings to the nuScenes
+  global ``translation, size (w, l, h), rotation (w, x, y, z)`` form.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from pyquaternion import Quaternion
+from torch import Tensor
+
+CAMERAS = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
+LIDAR = "LIDAR_TOP"
+DETECTION_CLASSES = (
+    "car", "truck", "construction_vehicle", "bus", "trailer",
+    "barrier", "motorcycle", "bicycle", "pedestrian", "traffic_cone",
+)
+# ImageNet statistics (RGB, on [0, 1]): what a ResNet backbone is usually initialised for.
+IMAGE_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
+IMAGE_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+POINT_BYTES = 5 * 4     # a .pcd.bin point: x, y, z, intensity, ring as float32
+
+
+class DataError(ValueError):
+    """Unusable input data: the message is one line naming the file or split."""
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """What the loader produces.
+
+    class_names : detection classes, in label order (label = index).
+    image_size : (H, W) of the images the network sees.
+    n_sweeps : lidar sweeps per sample: the key frame plus n_sweeps - 1 previous sweeps.
+    point_range : (xmin, ymin, zmin, xmax, ymax, zmax), key-frame lidar frame; points outside
+        and boxes whose centre lies outside are dropped (min <= p < max).
+    min_points : boxes with fewer lidar points are dropped. The devkit's DetectionEval drops
+        GT boxes without lidar (and radar) points too, so 0-point boxes are never evaluated.
+    """
+
+    class_names: tuple[str, ...] = DETECTION_CLASSES
+    image_size: tuple[int, int] = (128, 352)
+    n_sweeps: int = 3
+    point_range: tuple[float, ...] = (-51.2, -51.2, -5.0, 51.2, 51.2, 3.0)
+    min_points: int = 1
+
+    def __post_init__(self):
+        if self.n_sweeps < 1:
+            raise ValueError(f"n_sweeps must be >= 1, got {self.n_sweeps}")
+        if len(self.point_range) != 6 or len(self.image_size) != 2:
+            raise ValueError(f"point_range needs 6 values and image_size 2, got {self.point_range}, {self.image_size}")
+
+
+@dataclass
+class Sample:
+    """One key frame, N = 6 cameras in ``CAMERAS`` order, all geometry in its lidar frame.
+
+    images : (N, 3, H, W) float32, RGB normalised with ``IMAGE_MEAN`` / ``IMAGE_STD``.
+    intrinsics : (N, 3, 3) float32 K of the original images.
+    T_lidar_from_cam : (N, 4, 4) float32 camera -> key-frame lidar.
+    img_aug : (N, 3, 3) float32 original -> network-image pixels.
+    points : (n, 5) float32 x, y, z (m), intensity / 255, time lag (s, 0 = key frame).
+    gt_boxes : (M, 9) float32 x, y, z, l, w, h, yaw, vx, vy (m/s, lidar axes).
+    gt_labels : (M,) int64 index into ``DataConfig.class_names``.
+    T_global_from_lidar : (4, 4) float64, to send predictions back to nuScenes global form.
+    sample_token : the nuScenes sample token.
+    """
+
+    images: Tensor
+    intrinsics: Tensor
+    T_lidar_from_cam: Tensor
+    img_aug: Tensor
+    points: Tensor
+    gt_boxes: Tensor
+    gt_labels: Tensor
+    T_global_from_lidar: Tensor
+    sample_token: str
+
+
+@dataclass
+class Batch:
+    """B samples. Shapes as in :class:`Sample` with a leading B; ragged data stay lists.
+
+    images : (B, N, 3, H, W) float32.  intrinsics : (B, N, 3, 3).  T_lidar_from_cam : (B, N, 4, 4).
+    img_aug : (B, N, 3, 3).  T_global_from_lidar : (B, 4, 4) float64.
+    points : list of B (n_i, 5).  gt_boxes : list of B (M_i, 9).  gt_labels : list of B (M_i,).
+    sample_tokens : list of B str.
+    """
+
+    images: Tensor
+    intrinsics: Tensor
+    T_lidar_from_cam: Tensor
+    img_aug: Tensor
+    points: list[Tensor]
+    gt_boxes: list[Tensor]
+    gt_labels: list[Tensor]
+    T_global_from_lidar: Tensor
+    sample_tokens: list[str] = field(default_factory=list)
+
+    def to(self, device: torch.device | str) -> "Batch":
+        """A copy with every tensor on ``device`` (tokens are shared)."""
+        return Batch(
+            images=self.images.to(device),
+            intrinsics=self.intrinsics.to(device),
+            T_lidar_from_cam=self.T_lidar_from_cam.to(device),
+            img_aug=self.img_aug.to(device),
+            points=[p.to(device) for p in self.points],
+            gt_boxes=[b.to(device) for b in self.gt_boxes],
+            gt_labels=[l.to(device) for l in self.gt_labels],
+            T_global_from_lidar=self.T_global_from_lidar.to(device),
+            sample_tokens=list(self.sample_tokens),
+        )
+
+
+def collate(samples: list[Sample]) -> Batch:
+    """Stack fixed-size fields, keep points and boxes as per-sample lists."""
+    return Batch(
+        images=torch.stack([s.images for s in samples]),
+        intrinsics=torch.stack([s.intrinsics for s in samples]),
+        T_lidar_from_cam=torch.stack([s.T_lidar_from_cam for s in samples]),
+        img_aug=torch.stack([s.img_aug for s in samples]),
+        points=[s.points for s in samples],
+        gt_boxes=[s.gt_boxes for s in samples],
+        gt_labels=[s.gt_labels for s in samples],
+        T_global_from_lidar=torch.stack([s.T_global_from_lidar for s in samples]),
+        sample_tokens=[s.sample_token for s in samples],
+    )
+
+
+# ---------------------------------------------------------------- transforms and boxes
+
+def transform_from(translation, rotation_wxyz) -> np.ndarray:
+    """(4, 4) float64 T_parent_from_child of a nuScenes record (translation, wxyz quaternion)."""
+    T = np.eye(4)
+    T[:3, :3] = Quaternion(rotation_wxyz).rotation_matrix
+    T[:3, 3] = translation
+    return T
+
+
+def box_to_lidar(translation, size_wlh, rotation_wxyz, T_lidar_from_global: np.ndarray) -> np.ndarray:
+    """A nuScenes global box -> (7,) float64 ``x, y, z, l, w, h, yaw`` in the lidar frame.
+
+    The yaw is the heading of the box's rotated x axis, as devkit's ``quaternion_yaw``; the
+    lidar's small roll/pitch relative to the ground is dropped (boxes are yaw-only).
+    """
+    R_lidar_from_box = T_lidar_from_global[:3, :3] @ Quaternion(rotation_wxyz).rotation_matrix
+    centre = T_lidar_from_global[:3, :3] @ np.asarray(translation, float) + T_lidar_from_global[:3, 3]
+    w, l, h = size_wlh
+    yaw = np.arctan2(R_lidar_from_box[1, 0], R_lidar_from_box[0, 0])
+    return np.array([*centre, l, w, h, yaw], dtype=np.float64)
+
+
+def box_lidar_to_global(box7, T_global_from_lidar: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse of :func:`box_to_lidar`: (7,) lidar box -> (translation (3,), size wlh (3,), rotation wxyz (4,))."""
+    x, y, z, l, w, h, yaw = (float(v) for v in box7[:7])
+    c, s = np.cos(yaw), np.sin(yaw)
+    R_lidar_from_box = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    R_global_from_box = T_global_from_lidar[:3, :3] @ R_lidar_from_box
+    translation = T_global_from_lidar[:3, :3] @ np.array([x, y, z]) + T_global_from_lidar[:3, 3]
+    # Re-orthonormalise: pyquaternion rejects matrices a few ulp away from a rotation.
+    u, _, vt = np.linalg.svd(R_global_from_box)
+    rotation = Quaternion(matrix=u @ vt).elements
+    return translation, np.array([w, l, h]), rotation
+
+
+# ---------------------------------------------------------------- files
+
+def load_points(path: Path) -> np.ndarray:
+    """(n, 5) float32 x, y, z, intensity, ring of a nuScenes ``.pcd.bin`` (sensor frame)."""
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise DataError(f"cannot read lidar file {path}: {e.strerror}") from None
+    if len(raw) % POINT_BYTES:
+        raise DataError(f"corrupt lidar file {path}: {len(raw)} bytes is not a multiple of {POINT_BYTES}")
+    return np.frombuffer(raw, dtype=np.float32).reshape(-1, 5)
+
+
+def load_image(path: Path) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of an image file."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)   # None for a missing or undecodable file
+    if img is None:
+        what = "missing" if not path.exists() else "unreadable"
+        raise DataError(f"{what} image file {path}")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def split_scene_names(dataroot: Path, version: str, split: str) -> list[str]:
+    """Scene names of an official split, else of a key of ``<dataroot>/<version>/splits.json``.
+
+    As DetectionEval does, splits.json is only read for names that are not official.
+    """
+    from nuscenes.utils.splits import create_splits_scenes
+    official = create_splits_scenes()
+    if split in official:
+        return list(official[split])
+    path = dataroot / version / "splits.json"
+    try:
+        splits = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DataError(f"split '{split}' is not official and {path} does not exist") from None
+    except (OSError, ValueError) as e:
+        raise DataError(f"cannot read splits file {path}: {e}") from None
+    if split not in splits:
+        raise DataError(f"split '{split}' is neither official nor in {path} (has: {', '.join(sorted(splits))})")
+    return list(splits[split])
+
+
+# ---------------------------------------------------------------- dataset
+
+class NuScenesDetection(torch.utils.data.Dataset):
+    """Key-frame samples of one split of a nuScenes-format dataroot, as :class:`Sample`.
+
+    Parameters
+    ----------
+    dataroot : folder holding ``<version>/``, ``samples/``, ``sweeps/``, ``maps/``.
+    version : e.g. ``v1.0-mini`` or ``v1.0-sim``.
+    split : an official split name or a key of ``<dataroot>/<version>/splits.json``.
+    cfg : :class:`DataConfig`.
+    """
+
+    def __init__(self, dataroot: str | Path, version: str, split: str, cfg: DataConfig = DataConfig()):
+        from nuscenes import NuScenes
+        self.root = Path(dataroot)
+        self.cfg = cfg
+        if not (self.root / version).is_dir():
+            raise DataError(f"no nuScenes tables at {self.root / version} (dataroot {self.root}, version {version})")
+        names = split_scene_names(self.root, version, split)
+        self.nusc = NuScenes(version=version, dataroot=str(self.root), verbose=False)
+        scene_by_name = {s["name"]: s for s in self.nusc.scene}
+        missing = [n for n in names if n not in scene_by_name]
+        # Official splits list all of trainval; a version (e.g. mini) holds only some of them.
+        if missing and (len(missing) == len(names) or split not in _official_splits()):
+            raise DataError(f"split '{split}' names scenes not in {self.root / version}/scene.json: {missing[:5]}")
+        self.sample_tokens: list[str] = []
+        for name in names:
+            if name not in scene_by_name:
+                continue
+            token = scene_by_name[name]["first_sample_token"]
+            while token:                                  # the scene's samples in time order
+                self.sample_tokens.append(token)
+                token = self.nusc.get("sample", token)["next"]
+
+    def __len__(self) -> int:
+        return len(self.sample_tokens)
+
+    def __getitem__(self, index: int) -> Sample:
+        sample = self.nusc.get("sample", self.sample_tokens[index])
+        lidar_sd = self.nusc.get("sample_data", sample["data"][LIDAR])
+        T_global_from_lidar = self._T_global_from_sensor(lidar_sd)
+        T_lidar_from_global = np.linalg.inv(T_global_from_lidar)
+        images, K, T_lidar_from_cam, A = self._cameras(sample, T_lidar_from_global)
+        points = self._points(lidar_sd, T_lidar_from_global)
+        boxes, labels = self._boxes(sample, T_lidar_from_global)
+        return Sample(
+            images=torch.from_numpy(images),
+            intrinsics=torch.from_numpy(K).float(),
+            T_lidar_from_cam=torch.from_numpy(T_lidar_from_cam).float(),
+            img_aug=torch.from_numpy(A).float(),
+            points=torch.from_numpy(points),
+            gt_boxes=torch.from_numpy(boxes),
+            gt_labels=torch.from_numpy(labels),
+            T_global_from_lidar=torch.from_numpy(T_global_from_lidar),
+            sample_token=sample["token"],
+        )
+
+    def _T_global_from_sensor(self, sd: dict) -> np.ndarray:
+        """(4, 4) float64 T_global_from_X for a sample_data record X (its own ego pose)."""
+        pose = self.nusc.get("ego_pose", sd["ego_pose_token"])
+        calib = self.nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+        return transform_from(pose["translation"], pose["rotation"]) @ transform_from(
+            calib["translation"], calib["rotation"]
+        )
+
+    def _cameras(self, sample: dict, T_lidar_from_global: np.ndarray):
+        """images (N, 3, H, W) float32, K (N, 3, 3), T_lidar_from_cam (N, 4, 4), img_aug (N, 3, 3)."""
+        H, W = self.cfg.image_size
+        images, Ks, Ts, As = [], [], [], []
+        for cam in CAMERAS:
+            sd = self.nusc.get("sample_data", sample["data"][cam])
+            calib = self.nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+            rgb = load_image(self.root / sd["filename"])
+            h0, w0 = rgb.shape[:2]
+            # INTER_AREA averages when shrinking (no aliasing); cv2 maps pixel centres, which is
+            # the same map u' = s u in the pixel-edge convention.
+            interp = cv2.INTER_AREA if (H < h0 and W < w0) else cv2.INTER_LINEAR
+            rgb = cv2.resize(rgb, (W, H), interpolation=interp)
+            images.append(((rgb.astype(np.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1))
+            Ks.append(np.asarray(calib["camera_intrinsic"], dtype=np.float64))
+            Ts.append(T_lidar_from_global @ self._T_global_from_sensor(sd))
+            As.append(np.diag([W / w0, H / h0, 1.0]))
+        return np.stack(images), np.stack(Ks), np.stack(Ts), np.stack(As)
+
+    def _points(self, key_sd: dict, T_lidar_from_global: np.ndarray) -> np.ndarray:
+        """(n, 5) float32 points of the key sweep and its previous sweeps, key-frame lidar frame."""
+        chunks, sd = [], key_sd
+        for k in range(self.cfg.n_sweeps):
+            raw = load_points(self.root / sd["filename"])
+            xyz = raw[:, :3]
+            if k > 0:   # the key sweep stays bit-exact: it is already in the key-frame lidar frame
+                T_key_from_sweep = T_lidar_from_global @ self._T_global_from_sensor(sd)
+                xyz = (xyz.astype(np.float64) @ T_key_from_sweep[:3, :3].T + T_key_from_sweep[:3, 3]).astype(np.float32)
+            lag = (key_sd["timestamp"] - sd["timestamp"]) * 1e-6       # integer us -> s
+            chunks.append(np.column_stack([xyz, raw[:, 3] / np.float32(255.0), np.full(len(raw), lag, np.float32)]))
+            if not sd["prev"]:
+                break
+            sd = self.nusc.get("sample_data", sd["prev"])
+        pts = np.concatenate(chunks).astype(np.float32)
+        lo, hi = np.asarray(self.cfg.point_range[:3]), np.asarray(self.cfg.point_range[3:])
+        keep = ((pts[:, :3] >= lo) & (pts[:, :3] < hi)).all(axis=1)
+        return np.ascontiguousarray(pts[keep])
+
+    def _boxes(self, sample: dict, T_lidar_from_global: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """gt_boxes (M, 9) float32 and gt_labels (M,) int64 in the key-frame lidar frame."""
+        from nuscenes.eval.detection.utils import category_to_detection_name
+        label_of = {name: i for i, name in enumerate(self.cfg.class_names)}
+        R_lidar_from_global = T_lidar_from_global[:3, :3]
+        boxes, labels = [], []
+        for token in sample["anns"]:
+            ann = self.nusc.get("sample_annotation", token)
+            name = category_to_detection_name(ann["category_name"])
+            if name not in label_of or ann["num_lidar_pts"] < self.cfg.min_points:
+                continue
+            box = box_to_lidar(ann["translation"], ann["size"], ann["rotation"], T_lidar_from_global)
+            velocity = np.nan_to_num(self.nusc.box_velocity(token), nan=0.0)   # global, m/s
+            v_lidar = R_lidar_from_global @ velocity
+            boxes.append(np.concatenate([box, v_lidar[:2]]))
+            labels.append(label_of[name])
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 9)
+        labels = np.asarray(labels, dtype=np.int64)
+        lo, hi = np.asarray(self.cfg.point_range[:3]), np.asarray(self.cfg.point_range[3:])
+        keep = ((boxes[:, :3] >= lo) & (boxes[:, :3] < hi)).all(axis=1)
+        return boxes[keep].astype(np.float32), labels[keep]
+
+
+def _official_splits() -> set[str]:
+    from nuscenes.utils.splits import create_splits_scenes
+    return set(create_splits_scenes())
