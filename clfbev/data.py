@@ -130,7 +130,7 @@ class Batch:
             img_aug=self.img_aug.to(device),
             points=[p.to(device) for p in self.points],
             gt_boxes=[b.to(device) for b in self.gt_boxes],
-            gt_labels=[l.to(device) for l in self.gt_labels],
+            gt_labels=[labels.to(device) for labels in self.gt_labels],
             T_global_from_lidar=self.T_global_from_lidar.to(device),
             sample_tokens=list(self.sample_tokens),
         )
