@@ -1,0 +1,215 @@
+"""CL-FusionBEV: lidar BEV + camera BEV -> MCM -> fusion -> BSM -> BEV backbone -> anchor head.
+
+Variants (the paper's ablation ladder, each one adds one part to the previous):
+
+- ``lidar``  : lidar BEV -> backbone -> head (the camera encoder is not even built);
+- ``camera`` : camera BEV -> backbone -> head (the lidar encoder is not built);
+- ``concat`` : ConvFuser(lidar BEV, camera BEV), the BEVFusion-style baseline;
+- ``mcm``    : the concat baseline with MCM in front of it;
+- ``full``   : mcm + BSM on the fused BEV.
+
+How MCM and the concat combine (``mcm``): the paper's MCM takes its queries from the lidar BEV
+(``q = W1 F_lidar + PE``) and its keys and values from the camera BEV, and "updates the BEV
+queries". So MCM is applied exactly so, ``F_lidar' = MCM(q = F_lidar, k = v = F_cam)`` (a
+post-norm transformer layer whose residual path keeps the lidar features), and the updated
+lidar BEV replaces the lidar BEV in the baseline's fuser: ``ConvFuser(F_lidar', F_cam)``. The
+``mcm`` variant thus differs from ``concat`` by the MCM step alone (what the ablation measures),
+and the query is never anything but the lidar BEV, as the paper says. Applying MCM to the
+ConvFuser output instead would make the queries partly camera features.
+
+Frames: everything is in the key-frame lidar frame; BEV maps are (B, C, ny, nx) with rows along
+y and columns along x over ``cfg.pc_range``. Predictions are boxes in that frame.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from clfbev.anchors import make_anchors, match_thresholds
+from clfbev.camera_encoder import CameraEncoder
+from clfbev.config import VARIANTS, ModelConfig
+from clfbev.data import Batch
+from clfbev.fusion import BSM, MCM, ConvFuser
+from clfbev.head import AnchorHead, Detections, HeadOutput, assign_targets, decode, stack_targets
+from clfbev.lidar_encoder import LidarEncoder
+from clfbev.losses import detection_loss
+
+# SECOND's BEV-backbone BatchNorm settings.
+BN_EPS, BN_MOMENTUM = 1e-3, 0.01
+
+
+def _conv_bn_relu(in_ch: int, out_ch: int, stride: int = 1) -> list[nn.Module]:
+    return [
+        nn.Conv2d(in_ch, out_ch, 3, stride=stride, padding=1, bias=False),  # BN's shift is the bias
+        nn.BatchNorm2d(out_ch, eps=BN_EPS, momentum=BN_MOMENTUM),
+        nn.ReLU(inplace=True),
+    ]
+
+
+class BEVBackbone(nn.Module):
+    """SECOND-style 2D BEV backbone with an FPN-like neck.
+
+    Stage 0 keeps the resolution, each later stage first halves it (3x3 conv, stride 2); every
+    stage has ``blocks`` conv-BN-ReLU layers. Each stage output is brought back to stride 1
+    (1x1 conv at stage 0, transposed conv otherwise) with ``up_ch`` channels, and the results
+    are concatenated: small objects keep the full-resolution detail, large ones get the wider
+    receptive field of the coarse stage.
+
+    Parameters
+    ----------
+    in_ch : channels of the input BEV.
+    channels : channels per stage; stage i > 0 works at stride 2^i.
+    blocks : conv layers per stage (>= 1).
+    up_ch : channels of each upsampled stage output.
+    """
+
+    def __init__(self, in_ch: int, channels: tuple[int, ...], blocks: int, up_ch: int) -> None:
+        super().__init__()
+        self.stages = nn.ModuleList()
+        self.ups = nn.ModuleList()
+        c = in_ch
+        for i, out in enumerate(channels):
+            layers = _conv_bn_relu(c, out, stride=1 if i == 0 else 2)
+            for _ in range(blocks - 1):
+                layers += _conv_bn_relu(out, out)
+            self.stages.append(nn.Sequential(*layers))
+            s = 2**i
+            up = nn.Conv2d(out, up_ch, 1, bias=False) if s == 1 else nn.ConvTranspose2d(out, up_ch, s, s, bias=False)
+            self.ups.append(nn.Sequential(up, nn.BatchNorm2d(up_ch, eps=BN_EPS, momentum=BN_MOMENTUM), nn.ReLU(True)))
+            c = out
+        self.out_channels = len(channels) * up_ch
+
+    def forward(self, bev: Tensor) -> Tensor:
+        """bev (B, in_ch, H, W) -> (B, out_channels, H, W)."""
+        H, W = bev.shape[2:]
+        outs, x = [], bev
+        for stage, up in zip(self.stages, self.ups):
+            x = stage(x)
+            # A stride-2 conv rounds odd sizes up, so the upsampled map may be 1 cell too big.
+            outs.append(up(x)[:, :, :H, :W])
+        return torch.cat(outs, dim=1)
+
+
+class CLFusionBEV(nn.Module):
+    """The detector. Built explicitly from ``cfg`` for one ``variant`` (see the module docstring).
+
+    Parameters
+    ----------
+    cfg : :class:`clfbev.config.ModelConfig`.
+    variant : 'lidar', 'camera', 'concat', 'mcm' or 'full'.
+    """
+
+    def __init__(self, cfg: ModelConfig, variant: str = "full") -> None:
+        super().__init__()
+        if variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+        self.cfg, self.variant = cfg, variant
+        uses_lidar, uses_camera = variant != "camera", variant != "lidar"
+
+        # Encoders: a modality the variant does not use is not built, hence never run.
+        self.lidar_encoder: LidarEncoder | None = None
+        self.camera_encoder: CameraEncoder | None = None
+        if uses_lidar:
+            self.lidar_encoder = LidarEncoder(
+                cfg.point_ch, cfg.vfe_ch, cfg.sparse_channels, cfg.pc_range, cfg.voxel_size,
+                cfg.max_points_per_voxel, cfg.max_voxels, cfg.sparse_blocks,
+            )
+        if uses_camera:
+            self.camera_encoder = CameraEncoder(
+                cfg.cam_depth, cfg.cam_width, cfg.fpn_ch, cfg.depth_bins, cfg.context_ch,
+                cfg.image_size, cfg.feature_stride, cfg.pc_range, cfg.cam_bev_voxel,
+            )
+
+        # Fusion.
+        attn = dict(heads=cfg.attn_heads, mode=cfg.attn_mode, window=cfg.attn_window,
+                    pool_stride=cfg.attn_pool_stride, ffn_ratio=cfg.attn_ffn_ratio,
+                    query_chunk=cfg.attn_query_chunk)
+        self.mcm: MCM | None = None
+        self.fuser: ConvFuser | None = None
+        self.bsm: BSM | None = None
+        if variant in ("mcm", "full"):
+            self.mcm = MCM(cfg.lidar_bev_channels, cfg.cam_bev_channels, cfg.fusion_dim, **attn)
+        if variant in ("concat", "mcm", "full"):
+            lidar_ch = cfg.fusion_dim if self.mcm is not None else cfg.lidar_bev_channels
+            self.fuser = ConvFuser(lidar_ch, cfg.cam_bev_channels, cfg.fusion_dim)
+        if variant == "full":
+            self.bsm = BSM(cfg.fusion_dim, **attn)
+
+        # BEV backbone and head.
+        self.backbone = BEVBackbone(cfg.bev_channels_of(variant), cfg.bev_channels, cfg.bev_blocks, cfg.bev_up_ch)
+        self.head = AnchorHead(self.backbone.out_channels, len(cfg.class_names), len(cfg.anchor_rotations),
+                               cfg.code_size, cfg.n_dir_bins, cfg.prior_prob)
+        anchors = make_anchors(cfg.class_names, cfg.head_feature_size, cfg.pc_range, cfg.anchor_rotations)
+        self.register_buffer("anchors", anchors, persistent=False)  # (ny, nx, n_cls, n_rot, 7)
+        self.thresholds = match_thresholds(cfg.class_names)
+
+    # ------------------------------------------------------------------ forward
+
+    def bev_features(self, batch: Batch) -> Tensor:
+        """The BEV map the backbone sees, (B, cfg.bev_channels_of(variant), ny, nx), lidar frame."""
+        lidar_bev = cam_bev = None
+        if self.lidar_encoder is not None:
+            lidar_bev = self.lidar_encoder(batch.points)                      # (B, Cl, ny, nx)
+        if self.camera_encoder is not None:
+            cam_bev = self.camera_encoder(batch.images, batch.intrinsics,
+                                          batch.T_lidar_from_cam, batch.img_aug)  # (B, Cc, ny, nx)
+        if self.variant == "lidar":
+            return lidar_bev
+        if self.variant == "camera":
+            return cam_bev
+        if self.mcm is not None:
+            # MCM: lidar BEV queries attend to the camera BEV and are updated by it.
+            lidar_bev = self.mcm(lidar_bev, cam_bev)                          # (B, dim, ny, nx)
+        fused = self.fuser(lidar_bev, cam_bev)                                # (B, dim, ny, nx)
+        if self.bsm is not None:
+            # BSM: self-attention over the fused BEV for global context.
+            fused = self.bsm(fused)
+        return fused
+
+    def forward(self, batch: Batch) -> HeadOutput:
+        """Batch -> head maps on the BEV grid: cls (B, A, ny, nx), box (B, A * code_size, ny, nx),
+        dir (B, A * n_dir_bins, ny, nx), with A = n_classes * n_rotations."""
+        return self.head(self.backbone(self.bev_features(batch)))
+
+    # ------------------------------------------------------------------ training and inference
+
+    def loss(self, batch: Batch) -> dict[str, Tensor]:
+        """Detection loss (paper eq. 9) of a batch; see :func:`clfbev.losses.detection_loss`.
+
+        ``batch.gt_boxes`` are (M_i, 9) ``x, y, z, l, w, h, yaw, vx, vy`` in the lidar frame and
+        ``batch.gt_labels`` (M_i,) indices into ``cfg.class_names``.
+        """
+        out = self(batch)
+        targets = stack_targets([
+            assign_targets(self.anchors, boxes[:, : self.cfg.code_size], labels, self.thresholds,
+                           n_dir_bins=self.cfg.n_dir_bins)
+            for boxes, labels in zip(batch.gt_boxes, batch.gt_labels)
+        ])
+        return detection_loss(out, targets, self.cfg.loss)
+
+    @torch.no_grad()
+    def predict(
+        self,
+        batch: Batch,
+        score_thr: float | None = None,
+        nms_iou: float | None = None,
+        max_per_sample: int | None = None,
+    ) -> list[Detections]:
+        """B Detections with boxes (K, code_size) ``x, y, z, l, w, h, yaw, vx, vy`` in the lidar
+        frame, scores (K,), labels (K,). Defaults from ``cfg``. The caller picks train/eval mode
+        (use ``model.eval()`` for BatchNorm running statistics)."""
+        cfg = self.cfg
+        out = self(batch)
+        return decode(
+            out.cls_logits, out.box_deltas, out.dir_logits, self.anchors,
+            score_thr=cfg.score_thr if score_thr is None else score_thr,
+            nms_iou=cfg.nms_iou if nms_iou is None else nms_iou,
+            max_per_sample=cfg.max_per_sample if max_per_sample is None else max_per_sample,
+            pre_nms=cfg.pre_nms,
+        )
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
