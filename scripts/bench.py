@@ -10,6 +10,14 @@ Medians over repeats, because machines are shared and noisy. Keys (simgen):
   worker_peak_rss_mb            peak RSS of a make worker over many scenes
   worker_rss_growth_mb          RSS after the last scene minus after the second (the first scene
                                 warms caches up); about 0 when nothing leaks
+Keys (clfbev, CPU, one torch thread per process unless said):
+  train_tiny_samples_per_s      tiny `full`: forward + backward + AdamW step, one generated sample
+  infer_tiny_ms                 tiny `full`: predict on one sample (median)
+  train_tiny_peak_rss_mb        peak RSS of the process running the training steps
+  paper_params_m, paper_gflops  the paper config's `full` model (FLOPs by torch.utils.flop_counter)
+  attn_ms_exact_64x64 (+ _peak_mb), attn_ms_scalable_180x180 (+ _peak_mb): one MCM-sized
+                                attention (B=1, 64 channels, 4 heads) in exact mode on 64x64 and in
+                                the scalable modes (window 8, pooled stride 4) on 180x180
 """
 from __future__ import annotations
 
@@ -129,15 +137,109 @@ print(json.dumps({"rss": rss, "peak": resource.getrusage(resource.RUSAGE_SELF).r
             "worker_rss_per_scene_mb": [round(v) for v in r["rss"]]}
 
 
+CLFBEV_TRAIN = """
+import json, resource, sys, time, tempfile, subprocess
+import numpy as np, torch
+torch.set_num_threads(1)
+from clfbev.config import tiny
+from clfbev.data import NuScenesDetection, collate
+from clfbev.model import CLFusionBEV
+cfg = tiny()
+ds = NuScenesDetection(sys.argv[1], "v1.0-sim", "sim-train", cfg.data_config())
+batch = collate([ds[0]])
+torch.manual_seed(0)
+model = CLFusionBEV(cfg, "full")
+opt = torch.optim.AdamW(model.parameters(), lr=2e-4, weight_decay=1e-2)
+times = []
+for _ in range(int(sys.argv[2])):
+    t = time.perf_counter()
+    opt.zero_grad()
+    model.loss(batch)["loss"].backward()
+    opt.step()
+    times.append(time.perf_counter() - t)
+model.eval()
+with torch.no_grad():
+    model.predict(batch)
+    inf = []
+    for _ in range(int(sys.argv[2])):
+        t = time.perf_counter(); model.predict(batch); inf.append(time.perf_counter() - t)
+print(json.dumps({"train_tiny_samples_per_s": 1.0 / float(np.median(times[1:])),
+                  "infer_tiny_ms": 1000 * float(np.median(inf)),
+                  "train_tiny_peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+CLFBEV_ATTN = """
+import json, resource, sys, time
+import numpy as np, torch
+torch.set_num_threads(1)
+from clfbev.attention import BEVAttention
+mode, side = sys.argv[1], int(sys.argv[2])
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+attn = BEVAttention(4, mode=mode, window=8, pool_stride=4)
+q = torch.randn(1, side, side, 64)
+with torch.no_grad():
+    attn(q, q, q)
+    ts = []
+    for _ in range(3):
+        t = time.perf_counter(); attn(q, q, q); ts.append(time.perf_counter() - t)
+print(json.dumps({"ms": 1000 * float(np.median(ts)),
+                  "peak_mb": (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) / 1024}))
+"""
+
+
+def _py(code: str, *args) -> dict:
+    proc = subprocess.run([sys.executable, "-c", code, *map(str, args)], check=True, cwd=ROOT,
+                          capture_output=True, text=True)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def bench_clfbev(quick: bool) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        subprocess.run([sys.executable, "-m", "simgen.cli", "make", "--preset", "tiny", "--scenes", "2",
+                        "--samples-per-scene", "2", "--out", tmp, "--quiet"], check=True, cwd=ROOT,
+                       stdout=subprocess.DEVNULL)
+        out = _py(CLFBEV_TRAIN, tmp, 4 if quick else 10)
+        if not quick:
+            out["paper_gflops"] = _py(PAPER_FLOPS, tmp)["gflops"]
+    exact = _py(CLFBEV_ATTN, "exact", 64)
+    window = _py(CLFBEV_ATTN, "window", 180)
+    pooled = _py(CLFBEV_ATTN, "pooled", 180)
+    out.update({"attn_ms_exact_64x64": exact["ms"], "attn_peak_mb_exact_64x64": exact["peak_mb"],
+                "attn_ms_scalable_180x180": window["ms"], "attn_peak_mb_scalable_180x180": window["peak_mb"],
+                "attn_ms_pooled_180x180": pooled["ms"], "attn_peak_mb_pooled_180x180": pooled["peak_mb"]})
+    from clfbev.config import paper
+    from clfbev.model import CLFusionBEV, count_parameters
+    out["paper_params_m"] = count_parameters(CLFusionBEV(paper(), "full")) / 1e6
+    return out
+
+
+PAPER_FLOPS = """
+import json, torch
+from torch.utils.flop_counter import FlopCounterMode
+torch.set_num_threads(2)
+import sys
+from clfbev.config import paper
+from clfbev.data import NuScenesDetection, collate
+from clfbev.model import CLFusionBEV
+cfg = paper()
+model = CLFusionBEV(cfg, "full").eval()
+batch = collate([NuScenesDetection(sys.argv[1], "v1.0-sim", "sim-train", cfg.data_config())[0]])
+with torch.no_grad(), FlopCounterMode(display=False) as fc:
+    model(batch)
+print(json.dumps({"gflops": fc.get_total_flops() / 1e9}))
+"""
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--quick", action="store_true", help="fewer repeats and smaller runs")
-    ap.add_argument("--only", nargs="*", default=None, help="subset: lidar render make memory")
+    ap.add_argument("--only", nargs="*", default=None, help="subset: lidar render make memory clfbev")
     args = ap.parse_args()
     repeats = 5 if args.quick else 20
     parts = {"lidar": lambda: bench_lidar(repeats), "render": lambda: bench_render(repeats),
-             "make": lambda: bench_make(args.quick), "memory": lambda: bench_worker_memory(args.quick)}
+             "make": lambda: bench_make(args.quick), "memory": lambda: bench_worker_memory(args.quick),
+             "clfbev": lambda: bench_clfbev(args.quick)}
     result = {"machine": {"cpus": os.cpu_count()}}
     for name, fn in parts.items():
         if args.only is None or name in args.only:
