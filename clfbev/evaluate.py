@@ -1,0 +1,189 @@
+"""Predictions -> nuScenes results JSON -> the official nuscenes-devkit ``DetectionEval``.
+
+The metric itself is never re-implemented here: this module only converts the detector's
+lidar-frame boxes to the nuScenes submission format (through :func:`clfbev.data.box_lidar_to_global`,
+the one place boxes leave the lidar frame), restricts the devkit config to the classes the split
+has (see REFERENCE.md, "Detection metric"), and runs ``DetectionEval``.
+
+Attributes: the model has no attribute head. ``attribute_name`` is DERIVED from the predicted
+speed and class (moving/parked, moving/standing, with/without rider), not learned; the AAE it
+gets is therefore a property of the velocity estimate.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from clfbev.data import Batch, NuScenesDetection, box_lidar_to_global, collate, split_scene_names
+
+MAX_PER_SAMPLE = 500          # the devkit's max_boxes_per_sample: it rejects a file with more
+VEHICLES = {"car", "truck", "bus", "trailer", "construction_vehicle"}
+CYCLES = {"bicycle", "motorcycle"}
+VEHICLE_MOVING_SPEED = 0.3    # m/s
+PEDESTRIAN_MOVING_SPEED = 0.2  # m/s
+CYCLE_MOVING_SPEED = 0.3      # m/s
+DEFAULT_META = {"use_camera": True, "use_lidar": True, "use_radar": False, "use_map": False, "use_external": False}
+
+
+def attribute_for(name: str, speed: float) -> str:
+    """The nuScenes attribute of a ``name`` box moving at ``speed`` m/s ('' for cones/barriers)."""
+    if name in VEHICLES:
+        return "vehicle.moving" if speed > VEHICLE_MOVING_SPEED else "vehicle.parked"
+    if name == "pedestrian":
+        return "pedestrian.moving" if speed > PEDESTRIAN_MOVING_SPEED else "pedestrian.standing"
+    if name in CYCLES:
+        # A moving two-wheeler has a rider; a still one is most likely parked without one.
+        return "cycle.with_rider" if speed > CYCLE_MOVING_SPEED else "cycle.without_rider"
+    return ""
+
+
+def detections_to_results(dets, sample_tokens, T_global_from_lidar, class_names) -> dict[str, list[dict]]:
+    """Per-sample detections (lidar frame) -> ``{sample_token: [nuScenes result dict, ...]}``.
+
+    dets : sequence of ``Detections`` (or ``(boxes (K, 9), scores (K,), labels (K,))``): boxes
+        ``x, y, z, l, w, h, yaw, vx, vy`` in each sample's key-frame lidar frame.
+    sample_tokens : one token per entry of ``dets``.
+    T_global_from_lidar : one (4, 4) transform per entry (tensor or array, float64 preferred).
+    class_names : label -> detection name.
+    At most :data:`MAX_PER_SAMPLE` boxes per sample, highest scores first.
+    """
+    if not (len(dets) == len(sample_tokens) == len(T_global_from_lidar)):
+        raise ValueError(f"got {len(dets)} detections, {len(sample_tokens)} tokens, {len(T_global_from_lidar)} transforms")
+    results: dict[str, list[dict]] = {}
+    for (boxes, scores, labels), token, T in zip(dets, sample_tokens, T_global_from_lidar):
+        T = np.asarray(torch.as_tensor(T, dtype=torch.float64).cpu())
+        boxes = np.asarray(torch.as_tensor(boxes).detach().cpu(), dtype=np.float64)
+        scores = np.asarray(torch.as_tensor(scores).detach().cpu(), dtype=np.float64)
+        labels = np.asarray(torch.as_tensor(labels).detach().cpu(), dtype=np.int64)
+        order = np.argsort(-scores, kind="stable")[:MAX_PER_SAMPLE]
+        out = []
+        for i in order:
+            translation, size, rotation = box_lidar_to_global(boxes[i, :7], T)
+            # A velocity is a direction: rotate only, no translation.
+            v_lidar = np.array([boxes[i, 7], boxes[i, 8], 0.0]) if boxes.shape[1] >= 9 else np.zeros(3)
+            v_global = T[:3, :3] @ v_lidar
+            name = class_names[int(labels[i])]
+            out.append({
+                "sample_token": token,
+                "translation": [float(v) for v in translation],
+                "size": [float(v) for v in size],
+                "rotation": [float(v) for v in rotation],
+                "velocity": [float(v_global[0]), float(v_global[1])],
+                "detection_name": name,
+                "detection_score": float(scores[i]),
+                "attribute_name": attribute_for(name, float(np.hypot(v_global[0], v_global[1]))),
+            })
+        results[token] = out
+    return results
+
+
+def write_results(path, results: dict, meta: dict | None = None) -> Path:
+    """Write the nuScenes submission ``{"meta": ..., "results": ...}`` atomically (temp + rename),
+    so a crash never leaves a half-written file that a later evaluation would read."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _atomic_json(path, {"meta": {**DEFAULT_META, **(meta or {})}, "results": results})
+    return path
+
+
+def _atomic_json(path: Path, obj) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(obj, f, indent=None)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def _split_sample_tokens(nusc, split: str) -> list[str]:
+    """Sample tokens of the scenes of ``split`` (official or from splits.json)."""
+    names = set(split_scene_names(Path(nusc.dataroot), nusc.version, split))
+    return [s["token"] for s in nusc.sample if nusc.get("scene", s["scene_token"])["name"] in names]
+
+
+def detection_config_for(nusc, split: str, class_names):
+    """``detection_cvpr_2019`` restricted to what ``split`` has (REFERENCE.md, "Detection metric").
+
+    class_range : every class with any GT box in the split (the devkit's filter indexes it for
+        each GT box, lidar points or not).
+    class_names : classes with at least one GT box with lidar points (a class without evaluable
+        GT would count as AP 0), intersected with the model's ``class_names``.
+    """
+    from nuscenes.eval.common.config import config_factory
+    from nuscenes.eval.detection.utils import category_to_detection_name
+
+    with_gt, with_points = set(), set()
+    for token in _split_sample_tokens(nusc, split):
+        for ann_token in nusc.get("sample", token)["anns"]:
+            ann = nusc.get("sample_annotation", ann_token)
+            name = category_to_detection_name(ann["category_name"])
+            if name is None:
+                continue
+            with_gt.add(name)
+            if ann["num_lidar_pts"] > 0:
+                with_points.add(name)
+    cfg = config_factory("detection_cvpr_2019")
+    cfg.class_range = {k: v for k, v in cfg.class_range.items() if k in with_gt}
+    cfg.class_names = [k for k in cfg.class_range if k in with_points and k in set(class_names)]
+    if not cfg.class_names:
+        raise ValueError(f"split '{split}' has no GT with lidar points of the classes {list(class_names)}")
+    return cfg
+
+
+def evaluate(nusc, results_path, split: str, out_dir, class_names) -> dict:
+    """Run the devkit's ``DetectionEval`` on ``results_path`` over ``split``; returns the devkit's
+    ``metrics_summary`` dict (``mean_ap``, ``nd_score``, ``mean_dist_aps``, ...), also written with
+    ``metrics_details.json`` to ``out_dir``.
+
+    The results must cover exactly the split's sample tokens. Predictions of classes without GT
+    in the split are dropped first (the devkit's range filter would fail on them); they cannot
+    change the AP of the evaluated classes anyway. The filtered file is what is evaluated.
+    """
+    from nuscenes.eval.detection.evaluate import DetectionEval
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cfg = detection_config_for(nusc, split, class_names)
+    sub = json.loads(Path(results_path).read_text())
+    expected = set(_split_sample_tokens(nusc, split))
+    got = set(sub["results"])
+    if got != expected:
+        raise ValueError(f"{results_path}: results cover {len(got)} samples, split '{split}' has {len(expected)} "
+                         f"({len(expected - got)} missing, {len(got - expected)} extra)")
+    sub["results"] = {tok: [b for b in boxes if b["detection_name"] in cfg.class_range]
+                      for tok, boxes in sub["results"].items()}
+    filtered = out_dir / "results_eval.json"
+    _atomic_json(filtered, sub)
+
+    ev = DetectionEval(nusc, cfg, str(filtered), eval_set=split, output_dir=str(out_dir), verbose=False)
+    metrics, details = ev.evaluate()
+    # What DetectionEval.main writes, without its prints and plots.
+    summary = metrics.serialize()
+    summary["meta"] = ev.meta.copy()
+    _atomic_json(out_dir / "metrics_summary.json", summary)
+    _atomic_json(out_dir / "metrics_details.json", details.serialize())
+    return summary
+
+
+@torch.no_grad()
+def predict_split(model, dataset: NuScenesDetection, batch_size: int = 1) -> dict[str, list[dict]]:
+    """Run ``model`` (in eval mode) over every sample of ``dataset``; nuScenes results dict with
+    one (possibly empty) entry per sample token."""
+    model.eval()
+    device = next(model.parameters()).device
+    class_names = model.cfg.class_names
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, collate_fn=collate)
+    results: dict[str, list[dict]] = {}
+    for batch in loader:
+        batch: Batch = batch.to(device)
+        dets = model.predict(batch)
+        results.update(detections_to_results(dets, batch.sample_tokens, batch.T_global_from_lidar.cpu(), class_names))
+    return results
