@@ -113,7 +113,7 @@ def test_overfit_four_samples_car_ap(tmp_path):
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
         opt.step()
         sched.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         if step % 25 == 0 or step == steps - 1:
             print(f"step {step:4d} loss {losses[-1]:.4f} ({time.perf_counter() - t0:.0f} s)", flush=True)
     train_s = time.perf_counter() - t0
