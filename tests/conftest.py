@@ -33,3 +33,14 @@ def tiny_dataset(tmp_path_factory) -> Path:
 def tiny_nusc(tiny_dataset):
     from nuscenes import NuScenes
     return NuScenes("v1.0-sim", str(tiny_dataset), verbose=False)
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """One torch thread for a test module, restored afterwards. Its tensors are small, and the 2
+    cores are shared: multi-threaded kernels then spin and turn a 0.1 s step into seconds."""
+    import torch
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

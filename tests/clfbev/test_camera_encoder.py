@@ -15,20 +15,13 @@ import torch
 from clfbev.camera_encoder import CameraEncoder, compress_z, depth_bin_centres, lift_geometry, splat
 from clfbev.resnet import FPN, ResNet
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # These tensors are tiny: intra-op threads only add overhead, and on shared cores two
-    # spinning threads make a 0.1 s step take seconds. Restored after the module.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def _assert_all_grads(module: torch.nn.Module) -> None:

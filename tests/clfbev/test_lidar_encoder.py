@@ -15,6 +15,8 @@ import torch
 from clfbev.lidar_encoder import VFE, LidarEncoder, SparseEncoder
 from clfbev.ops.voxelize import voxelize
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 # (pc_range, voxel_size): grid (nz, ny, nx) = (10, 32, 32); BEV 8 x 8 with 2 downsamplings.
 RANGE_A, VOXEL_A = (-6.4, -6.4, -2.0, 6.4, 6.4, 2.0), (0.4, 0.4, 0.4)
 # Non-square, odd grid (16, 24, 65); BEV 6 x 17 with 2 downsamplings.
@@ -22,15 +24,6 @@ RANGE_B, VOXEL_B = (-6.5, -4.8, -3.0, 6.5, 4.8, 1.0), (0.2, 0.4, 0.25)
 # A larger grid (10, 64, 64) -> BEV 16 x 16, so that a receptive field is a small part of it.
 RANGE_C, VOXEL_C = (-12.8, -12.8, -2.0, 12.8, 12.8, 2.0), (0.4, 0.4, 0.4)
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    # Other processes share the 2 cores: multi-threaded OpenMP kernels then spin and can run
-    # 100x slower. These tensors are small, one thread is the fast and stable choice.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def random_points(n, pc_range, seed, margin=0.0, dtype=torch.float32):

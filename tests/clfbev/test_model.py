@@ -24,16 +24,10 @@ from clfbev.config import VARIANTS, load_config, paper, tiny
 from clfbev.data import Batch
 from clfbev.model import CLFusionBEV, count_parameters
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 CLASSES = ("car", "pedestrian", "bicycle")
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    # The 2 cores are shared: multi-threaded kernels then spin and get slow and noisy.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def camera_rig(n_cams: int = 6) -> torch.Tensor:
