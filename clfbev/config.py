@@ -281,8 +281,16 @@ def load_config(name_or_path: str | Path) -> ModelConfig:
         raise ValueError(f"{path}: no such file, and not a preset ({', '.join(PRESETS)})") from None
     except yaml.YAMLError as e:
         raise ValueError(f"{path}: not valid YAML: {e}") from None
+    return config_from_dict(data, path)
+
+
+def config_from_dict(data, source: str | Path = "<config>") -> ModelConfig:
+    """A :class:`ModelConfig` from a mapping (a parsed YAML file, or ``ModelConfig.to_dict()``
+    as a checkpoint stores it), validated like a YAML file; errors name ``source``."""
+    path = source
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping of config keys, got {type(data).__name__}")
+    data = dict(data)
     preset = data.pop("preset", "tiny")
     if preset not in PRESETS:
         raise ValueError(f"{path}: key 'preset' must be one of {list(PRESETS)}, got {preset!r}")

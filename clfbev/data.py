@@ -42,6 +42,7 @@ DETECTION_CLASSES = (
 # ImageNet statistics (RGB, on [0, 1]): what a ResNet backbone is usually initialised for.
 IMAGE_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGE_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+ALL_SCENES = "all"       # the pseudo split of every scene in a version
 POINT_BYTES = 5 * 4     # a .pcd.bin point: x, y, z, intensity, ring as float32
 
 
@@ -239,18 +240,22 @@ class NuScenesDetection(torch.utils.data.Dataset):
     ----------
     dataroot : folder holding ``<version>/``, ``samples/``, ``sweeps/``, ``maps/``.
     version : e.g. ``v1.0-mini`` or ``v1.0-sim``.
-    split : an official split name or a key of ``<dataroot>/<version>/splits.json``.
+    split : an official split name, a key of ``<dataroot>/<version>/splits.json``, or
+        :data:`ALL_SCENES` for every scene of the version (e.g. a dataroot without splits).
     cfg : :class:`DataConfig`.
     """
 
     def __init__(self, dataroot: str | Path, version: str, split: str, cfg: DataConfig = DataConfig()):
         from nuscenes import NuScenes
         self.root = Path(dataroot)
-        self.cfg = cfg
+        self.cfg, self.version, self.split = cfg, version, split
         if not (self.root / version).is_dir():
             raise DataError(f"no nuScenes tables at {self.root / version} (dataroot {self.root}, version {version})")
-        names = split_scene_names(self.root, version, split)
+        if split != ALL_SCENES:
+            names = split_scene_names(self.root, version, split)
         self.nusc = NuScenes(version=version, dataroot=str(self.root), verbose=False)
+        if split == ALL_SCENES:
+            names = [s["name"] for s in self.nusc.scene]
         scene_by_name = {s["name"]: s for s in self.nusc.scene}
         missing = [n for n in names if n not in scene_by_name]
         # Official splits list all of trainval; a version (e.g. mini) holds only some of them.

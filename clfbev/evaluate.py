@@ -138,10 +138,11 @@ def detection_config_for(nusc, split: str, class_names):
     return cfg
 
 
-def evaluate(nusc, results_path, split: str, out_dir, class_names) -> dict:
+def evaluate(nusc, results_path, split: str, out_dir, class_names, plots: bool = False) -> dict:
     """Run the devkit's ``DetectionEval`` on ``results_path`` over ``split``; returns the devkit's
     ``metrics_summary`` dict (``mean_ap``, ``nd_score``, ``mean_dist_aps``, ...), also written with
-    ``metrics_details.json`` to ``out_dir``.
+    ``metrics_details.json`` to ``out_dir`` (and, with ``plots``, the devkit's PR and TP curves
+    to ``out_dir/plots``).
 
     The results must cover exactly the split's sample tokens. Predictions of classes without GT
     in the split are dropped first (the devkit's range filter would fail on them); they cannot
@@ -160,17 +161,49 @@ def evaluate(nusc, results_path, split: str, out_dir, class_names) -> dict:
                          f"({len(expected - got)} missing, {len(got - expected)} extra)")
     sub["results"] = {tok: [b for b in boxes if b["detection_name"] in cfg.class_range]
                       for tok, boxes in sub["results"].items()}
+    if not any(sub["results"].values()):
+        # No box at all (e.g. a model early in training): the metrics are defined (AP 0, TP
+        # errors 1), but DetectionEval cannot start, as it reads the box type off the first box.
+        # One score-0 box 10 km away is added; the devkit's range filter removes it before any
+        # matching, so it cannot change a metric.
+        token = sorted(expected)[0]
+        sub["results"][token] = [{
+            "sample_token": token, "translation": [1e4, 1e4, 0.0], "size": [1.0, 1.0, 1.0],
+            "rotation": [1.0, 0.0, 0.0, 0.0], "velocity": [0.0, 0.0], "detection_name": cfg.class_names[0],
+            "detection_score": 0.0, "attribute_name": attribute_for(cfg.class_names[0], 0.0)}]
     filtered = out_dir / "results_eval.json"
     _atomic_json(filtered, sub)
 
     ev = DetectionEval(nusc, cfg, str(filtered), eval_set=split, output_dir=str(out_dir), verbose=False)
     metrics, details = ev.evaluate()
+    if plots:
+        _render_curves(ev, metrics, details)
     # What DetectionEval.main writes, without its prints and plots.
     summary = metrics.serialize()
     summary["meta"] = ev.meta.copy()
     _atomic_json(out_dir / "metrics_summary.json", summary)
     _atomic_json(out_dir / "metrics_details.json", details.serialize())
     return summary
+
+
+def _render_curves(ev, metrics, details) -> None:
+    """The devkit's PR and TP curves (``DetectionEval.render``) as PNGs in ``ev.plot_dir``,
+    without its summary plot, which assumes all ten classes are evaluated."""
+    from nuscenes.eval.detection.render import class_pr_curve, class_tp_curve, dist_pr_curve
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cfg = ev.cfg
+    for name in cfg.class_names:
+        class_pr_curve(details, metrics, name, cfg.min_precision, cfg.min_recall,
+                       savepath=os.path.join(ev.plot_dir, f"{name}_pr.png"))
+        class_tp_curve(details, metrics, name, cfg.min_recall, cfg.dist_th_tp,
+                       savepath=os.path.join(ev.plot_dir, f"{name}_tp.png"))
+    for dist_th in cfg.dist_ths:
+        dist_pr_curve(details, metrics, dist_th, cfg.min_precision, cfg.min_recall,
+                      savepath=os.path.join(ev.plot_dir, f"dist_pr_{dist_th}.png"))
+    plt.close("all")
 
 
 @torch.no_grad()

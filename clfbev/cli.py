@@ -1,0 +1,222 @@
+"""`clfbev train | eval | predict | show`: the detector's command line.
+
+    clfbev train   --data DIR --config tiny --variant full --out RUN [--epochs N | --max-steps N] [--resume]
+    clfbev eval    --data DIR --ckpt RUN/best.pt [--split sim-val] --out DIR
+    clfbev predict --data DIR --ckpt CKPT --out results.json [--split all]
+    clfbev show    --data DIR --results results.json [--sample I] --out FILE.png [--attention --ckpt CKPT]
+
+Bad input (a missing dataroot, an unknown split, a corrupt or mismatched checkpoint, an invalid
+config file, an unwritable output) gets one line on stderr naming the file or option, and exit
+code 2. A non-finite training loss stops training with exit code 3, keeping the last checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+EXIT_BAD_INPUT = 2
+EXIT_TRAIN_FAILED = 3
+
+
+def run_guarded(fn) -> int:
+    """Run ``fn()``; map the project's input errors to one stderr line and exit code 2."""
+    from clfbev.checkpoint import CheckpointError
+    from clfbev.data import DataError
+    from clfbev.train import TrainError
+    try:
+        fn()
+        return 0
+    except (DataError, CheckpointError, ValueError, PermissionError, NotADirectoryError, IsADirectoryError, FileExistsError) as e:
+        print(f"clfbev: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except TrainError as e:
+        print(f"clfbev: error: {e}", file=sys.stderr)
+        return EXIT_TRAIN_FAILED
+    except KeyboardInterrupt:
+        print("clfbev: interrupted; `clfbev train ... --resume` continues from the last checkpoint", file=sys.stderr)
+        return 130
+
+
+def check_writable(out: Path, is_file: bool = False) -> None:
+    """Refuse an output folder (or, with ``is_file``, the folder of an output file) whose nearest
+    existing ancestor is not a writable folder."""
+    p = Path(out).resolve()
+    if is_file:
+        if p.is_dir():
+            raise IsADirectoryError(f"--out {out} is a directory, expected a file path")
+        p = p.parent
+    while not p.exists():
+        p = p.parent
+    if not p.is_dir():
+        raise NotADirectoryError(f"--out {out}: {p} is not a directory")
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise PermissionError(f"--out {out}: {p} is not writable")
+
+
+def _device():
+    import torch
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def _load(args):
+    from clfbev.checkpoint import load_model
+    from clfbev.config import load_config
+    cfg = load_config(args.config) if args.config else None
+    return load_model(args.ckpt, cfg, args.variant, device=_device())
+
+
+# ---------------------------------------------------------------- commands
+
+def cmd_train(args) -> None:
+    from clfbev.train import run_from_args
+    check_writable(args.out)
+    run_from_args(args)
+
+
+def cmd_eval(args) -> None:
+    from clfbev.data import NuScenesDetection
+    from clfbev.evaluate import evaluate, predict_split, write_results
+    check_writable(args.out)
+    model, _ = _load(args)
+    ds = NuScenesDetection(args.data, args.version, args.split, model.cfg.data_config())
+    results = predict_split(model, ds, batch_size=args.batch_size)
+    path = write_results(Path(args.out) / "results.json", results)
+    summary = evaluate(ds.nusc, path, args.split, args.out, model.cfg.class_names, plots=not args.no_plots)
+    print(format_summary(summary))
+    print(f"wrote {path} and the devkit's metrics_summary.json / metrics_details.json to {args.out}")
+
+
+def format_summary(summary: dict) -> str:
+    """The devkit summary as a per-class table plus mAP / NDS (what DetectionEval.main prints)."""
+    tp = summary["label_tp_errors"]
+    cols = ("trans_err", "scale_err", "orient_err", "vel_err", "attr_err")
+    lines = [f"mAP {summary['mean_ap']:.4f}   NDS {summary['nd_score']:.4f}",
+             f"{'class':22s} {'AP':>6s} " + " ".join(f"{c.split('_')[0][:6]:>7s}" for c in cols)]
+    for name, ap in summary["mean_dist_aps"].items():
+        lines.append(f"{name:22s} {ap:6.3f} " + " ".join(f"{tp[name][c]:7.3f}" for c in cols))
+    return "\n".join(lines)
+
+
+def cmd_predict(args) -> None:
+    from clfbev.data import NuScenesDetection
+    from clfbev.evaluate import predict_split, write_results
+    check_writable(args.out, is_file=True)
+    model, _ = _load(args)
+    ds = NuScenesDetection(args.data, args.version, args.split, model.cfg.data_config())
+    results = predict_split(model, ds, batch_size=args.batch_size)
+    write_results(args.out, results)
+    n = sum(len(v) for v in results.values())
+    print(f"wrote {n} boxes for {len(results)} samples to {args.out}")
+
+
+def cmd_show(args) -> None:
+    import cv2
+    import numpy as np
+    from clfbev.data import DataError, NuScenesDetection, collate
+    from clfbev.visualize import attention_maps, attention_panel, cell_of, load_results, sample_sheet
+
+    check_writable(args.out, is_file=True)
+    results = load_results(args.results)
+    from nuscenes import NuScenes
+    if not (Path(args.data) / args.version).is_dir():
+        raise DataError(f"no nuScenes tables at {Path(args.data) / args.version}")
+    nusc = NuScenes(version=args.version, dataroot=str(args.data), verbose=False)
+    tokens = [t for t in (s["token"] for s in nusc.sample) if t in results]
+    if not tokens:
+        raise DataError(f"{args.results} has no sample of {Path(args.data) / args.version}")
+    if not 0 <= args.sample < len(tokens):
+        raise ValueError(f"--sample {args.sample}: {args.results} covers {len(tokens)} samples (0..{len(tokens) - 1})")
+    token = tokens[args.sample]
+    sheet = sample_sheet(nusc, token, results[token], args.score_thr)
+    if args.attention:
+        if not args.ckpt:
+            raise ValueError("--attention needs --ckpt (the model whose attention is drawn)")
+        model, _ = _load(args)
+        ds = NuScenesDetection(args.data, args.version, "all", model.cfg.data_config())
+        batch = collate([ds[ds.sample_tokens.index(token)]]).to(_device())
+        if args.cell:
+            xy = tuple(float(v) for v in args.cell.split(","))
+        else:   # the best-scoring prediction, in the lidar frame
+            T = batch.T_global_from_lidar[0].cpu().numpy()
+            best = max(results[token], key=lambda r: r["detection_score"], default=None)
+            xy = (0.0, 10.0) if best is None else tuple((np.linalg.inv(T) @ np.r_[best["translation"], 1.0])[:2])
+        cell = cell_of(xy, model.cfg.pc_range, model.cfg.head_feature_size)
+        maps = attention_maps(model, batch, cell)
+        panel = attention_panel(maps, batch.points[0].cpu().numpy(), cell, model.cfg.pc_range, sheet.shape[0])
+        pad = np.zeros((panel.shape[0], max(0, sheet.shape[1] - panel.shape[1]), 3), np.uint8)
+        sheet = np.concatenate([sheet, np.concatenate([panel, pad], 1)[:, : sheet.shape[1]]], 0)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.tmp{out.suffix}")
+    if not cv2.imwrite(str(tmp), sheet):
+        raise ValueError(f"--out {out}: cannot write an image with that extension")
+    tmp.replace(out)
+    print(f"wrote {out}")
+
+
+# ---------------------------------------------------------------- parser
+
+def build_parser() -> argparse.ArgumentParser:
+    from clfbev.config import VARIANTS
+    from clfbev.train import VERSION, add_arguments
+
+    ap = argparse.ArgumentParser(prog="clfbev", description="CL-FusionBEV: camera + lidar BEV fusion detector "
+                                 "(train, evaluate with the official nuScenes metrics, predict, visualise).")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("train", help="train a variant; checkpoints, logs and validation in --out",
+                       description="Train CL-FusionBEV (or an ablation variant) from scratch. Writes RUN/last.pt "
+                       "(atomically, every epoch and every --ckpt-minutes), RUN/best.pt (best val NDS), run.json, "
+                       "metrics.jsonl and TensorBoard events in RUN/tb. Under torchrun it trains with DDP.")
+    add_arguments(p)
+    p.set_defaults(fn=cmd_train)
+
+    def model_args(p, ckpt_required=True):
+        p.add_argument("--data", required=True, type=Path, help="nuScenes-format dataroot")
+        p.add_argument("--ckpt", required=ckpt_required, type=Path, help="checkpoint (RUN/best.pt or RUN/last.pt)")
+        p.add_argument("--version", default=VERSION, help="table folder under the dataroot")
+        p.add_argument("--config", default=None, help="refuse a checkpoint not trained with this config")
+        p.add_argument("--variant", default=None, choices=VARIANTS, help="refuse a checkpoint of another variant")
+        p.add_argument("--batch-size", type=int, default=1)
+
+    p = sub.add_parser("eval", help="official nuScenes DetectionEval of a checkpoint on a split",
+                       description="Predict a split, write results.json (nuScenes submission format) and run the "
+                       "devkit's DetectionEval, restricted to the classes with GT in the split. Writes the devkit's "
+                       "metrics_summary.json, metrics_details.json and plots/ to --out; prints a per-class table.")
+    model_args(p)
+    p.add_argument("--split", default="sim-val", help="split to evaluate (splits.json key or official)")
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument("--no-plots", action="store_true", help="skip the devkit's PR / TP curve plots")
+    p.set_defaults(fn=cmd_eval)
+
+    p = sub.add_parser("predict", help="results JSON for any dataroot (annotated or not)",
+                       description="Run a checkpoint on a dataroot and write nuScenes-format results.")
+    model_args(p)
+    p.add_argument("--split", default="all", help="split to predict ('all': every scene)")
+    p.add_argument("--out", required=True, type=Path, help="results JSON path")
+    p.set_defaults(fn=cmd_predict)
+
+    p = sub.add_parser("show", help="cameras + BEV with predictions and GT (and attention maps) as a PNG",
+                       description="Draw one sample: the six cameras and a BEV, GT in green and predictions in "
+                       "orange. --attention adds the MCM and BSM attention of one BEV cell (needs --ckpt).")
+    model_args(p, ckpt_required=False)
+    p.add_argument("--results", required=True, type=Path, help="results JSON (from eval or predict)")
+    p.add_argument("--sample", type=int, default=0, help="index among the samples the results cover")
+    p.add_argument("--score-thr", type=float, default=0.3, help="draw predictions scoring at least this")
+    p.add_argument("--attention", action="store_true", help="add MCM / BSM attention maps (mcm / full variants)")
+    p.add_argument("--cell", default=None, help="query 'x,y' in metres, lidar frame (default: best prediction)")
+    p.add_argument("--out", required=True, type=Path, help="PNG path")
+    p.set_defaults(fn=cmd_show)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)    # argparse itself exits 2 on malformed options
+    return run_guarded(lambda: args.fn(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
