@@ -299,7 +299,7 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
                     losses = loss_module(batch)
                 loss = losses["loss"]
                 if not _all_finite(loss.detach(), world):
-                    raise TrainError(f"non-finite loss ({float(loss):g}) at step {step + 1}: training stopped; "
+                    raise TrainError(f"non-finite loss ({float(loss.detach()):g}) at step {step + 1}: training stopped; "
                                      f"the last good checkpoint {last_path} is kept")
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
