@@ -86,6 +86,18 @@ def build_parser() -> argparse.ArgumentParser:
     mk.add_argument("--gl", choices=("egl", "osmesa"), default=None,
                     help="OpenGL platform [egl, or $PYOPENGL_PLATFORM]; osmesa is the slow fallback")
     mk.add_argument("--quiet", action="store_true", help="no progress bar")
+    dg = mk.add_argument_group("degradation (overrides the preset's 'degrade' section; labels stay clean, "
+                               "so a degraded run pairs with the clean run of the same seed)")
+    dg.add_argument("--fog", type=int, default=None, metavar="0-5",
+                    help="fog severity; lidar alpha 0.005/0.01/0.02/0.03/0.06 per m, same extinction on the cameras")
+    dg.add_argument("--fog-visibility", type=float, default=None, metavar="METRES",
+                    help="fog by meteorological optical range instead (alpha = ln(20) / MOR)")
+    dg.add_argument("--lens-occlusion", type=int, default=None, metavar="0-5", help="dirt blobs on every camera lens")
+    dg.add_argument("--beam-drop", type=int, default=None, metavar="N", help="drop N of the 32 lidar rings")
+    dg.add_argument("--lidar-fov", type=float, default=None, metavar="DEGREES",
+                    help="keep only this sector around the ego's forward axis")
+    dg.add_argument("--drop-sensor", default=None, metavar="CHANNEL[,CHANNEL]",
+                    help="failed sensors: a black image / an empty point cloud (the records and files exist)")
 
     sub.add_parser("presets", help="list the presets, one line each")
 
@@ -134,11 +146,13 @@ def _run(args) -> int:
 
 
 def _make(args) -> int:
-    from .config import load_preset, with_resolution
+    from .config import load_preset, with_degradation, with_resolution
     from .pipeline import MakeSettings, make
     cfg = load_preset(args.preset)
     if args.resolution:
         cfg = with_resolution(cfg, *args.resolution)
+    cfg = with_degradation(cfg, fog=args.fog, fog_visibility=args.fog_visibility, lens_occlusion=args.lens_occlusion,
+                           beam_drop=args.beam_drop, lidar_fov=args.lidar_fov, drop_sensors=args.drop_sensor)
     if not re.fullmatch(r"[A-Za-z0-9._-]+", args.version):
         raise ConfigError(f"--version {args.version!r}: use letters, digits, '.', '_' and '-' only")
     check_writable(args.out)

@@ -87,6 +87,65 @@ class LidarConfig:
     intensity_ref_range: float = field(default=6.0, metadata=_rng(0.5, 100.0))
 
 
+SENSOR_CHANNELS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT",
+                   "CAM_FRONT_LEFT", "LIDAR_TOP")
+
+
+@dataclass(frozen=True)
+class DegradeConfig:
+    """Sensor degradation (simgen/degrade.py). The world and the labels stay the clean ones.
+
+    fog : severity 0-5 (lidar alpha 0, 0.005, 0.01, 0.02, 0.03, 0.06 /m), or fog_visibility :
+    the meteorological optical range in metres (> 0 overrides the severity; 0 = off).
+    lens_occlusion : 0-5 dirt blobs on every camera. beam_drop : rings removed (of 32).
+    lidar_fov : degrees kept around the ego's forward axis (360 = all).
+    drop_sensors : comma-separated channels that deliver nothing (black image / empty cloud).
+    """
+    fog: int = field(default=0, metadata=_rng(0, 5))
+    fog_visibility: float = field(default=0.0, metadata=_rng(0.0, 100000.0))
+    lens_occlusion: int = field(default=0, metadata=_rng(0, 5))
+    beam_drop: int = field(default=0, metadata=_rng(0, 32))
+    lidar_fov: float = field(default=360.0, metadata=_rng(1.0, 360.0))
+    drop_sensors: str = ""
+
+    @property
+    def alpha(self) -> float:
+        """Fog extinction (1/m) shared by camera and lidar; 0 without fog."""
+        from .degrade import FOG_ALPHA, alpha_of_visibility
+        return alpha_of_visibility(self.fog_visibility) if self.fog_visibility > 0 else FOG_ALPHA[self.fog]
+
+    @property
+    def dropped(self) -> tuple[str, ...]:
+        return tuple(c for c in (x.strip() for x in self.drop_sensors.split(",")) if c)
+
+    @property
+    def active(self) -> bool:
+        return self != DegradeConfig()
+
+    def describe(self) -> str:
+        """One line for the scene description ('' when clean)."""
+        from .degrade import visibility_of
+        parts = []
+        if self.alpha > 0:
+            parts.append(f"fog alpha {self.alpha:.4g}/m (visibility {visibility_of(self.alpha):.0f} m)")
+        if self.lens_occlusion:
+            parts.append(f"lens occlusion {self.lens_occlusion}")
+        if self.beam_drop:
+            parts.append(f"{self.beam_drop} of 32 lidar rings dropped")
+        if self.lidar_fov < 360:
+            parts.append(f"lidar FOV {self.lidar_fov:g} deg")
+        if self.dropped:
+            parts.append(f"failed sensors {', '.join(self.dropped)}")
+        return ("Degraded: " + "; ".join(parts) + ".") if parts else ""
+
+
+def check_channels(text: str, where: str) -> None:
+    """Refuse unknown sensor channel names in a drop_sensors list."""
+    bad = [c for c in (x.strip() for x in text.split(",")) if c and c not in SENSOR_CHANNELS]
+    if bad:
+        raise ConfigError(f"{where}: unknown channel {bad[0]!r} (allowed: {', '.join(SENSOR_CHANNELS)})")
+
+
 @dataclass(frozen=True)
 class SceneConfig:
     """Everything a preset sets. ``name`` and ``source`` record where it came from."""
@@ -96,6 +155,7 @@ class SceneConfig:
     ego: EgoConfig = field(default_factory=EgoConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     lidar: LidarConfig = field(default_factory=LidarConfig)
+    degrade: DegradeConfig = field(default_factory=DegradeConfig)
     name: str = field(default="custom", metadata={"internal": True})
     source: str = field(default="", metadata={"internal": True})
 
@@ -184,8 +244,27 @@ def load_preset(name_or_path: str) -> SceneConfig:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level")
     cfg = _build(SceneConfig, data, f"{path}:")
+    check_channels(cfg.degrade.drop_sensors, f"{path}: degrade.drop_sensors")
     name = path.stem if name_or_path in presets else str(path)
     return dataclasses.replace(cfg, name=name, source=path.read_text())
+
+
+def with_degradation(cfg: SceneConfig, **flags) -> SceneConfig:
+    """A copy of ``cfg`` whose degrade fields ``flags`` (those not None) replace the preset's,
+    each validated like the preset field; errors name the command-line flag."""
+    meta = {f.name: f for f in fields(DegradeConfig)}
+    hints = get_type_hints(DegradeConfig)
+    values = {}
+    for name, value in flags.items():
+        if value is None:
+            continue
+        flag = "--" + {"drop_sensors": "drop-sensor"}.get(name, name.replace("_", "-"))
+        if hints[name] is str:
+            check_channels(value, flag)
+            values[name] = value
+        else:
+            values[name] = _check_number(value, hints[name], dict(meta[name].metadata), flag)
+    return dataclasses.replace(cfg, degrade=dataclasses.replace(cfg.degrade, **values))
 
 
 def with_resolution(cfg: SceneConfig, width: int, height: int) -> SceneConfig:

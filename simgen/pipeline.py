@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import degrade as D
 from . import geometry as geo
 from . import labels
 from . import rig
@@ -50,6 +51,41 @@ class MakeSettings:
 def scene_rng(seed: int, idx: int, stream: int) -> np.random.Generator:
     """Independent generators per (seed, scene, stream): 0 = world, 1 = sensors."""
     return np.random.default_rng(np.random.SeedSequence([seed, idx, stream]))
+
+
+def degrade_sweep(sweep, cfg: SceneConfig, rings: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The points (n, 5) a degraded LIDAR_TOP delivers for a clean ``sweep``: fog, then the
+    dropped rings and the field of view; no points at all if the lidar failed. ``rng`` is the
+    scene's degradation stream (the clean sensor stream is left untouched)."""
+    d = cfg.degrade
+    if rig.LIDAR in d.dropped:
+        return np.zeros((0, 5), np.float32)
+    pts = sweep.points_lidar
+    if d.alpha > 0:
+        pts, _ = D.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, d.alpha,
+                             cfg.lidar.min_return, cfg.lidar.intensity_ref_range, rng)
+    if len(rings):
+        pts = D.drop_rings(pts, rings)
+    if d.lidar_fov < 360:
+        forward_lidar = rig.T_ego_from_lidar()[:3, :3].T @ np.array([1.0, 0.0, 0.0])
+        pts = D.keep_sector(pts, forward_lidar, d.lidar_fov)
+    return pts
+
+
+def degrade_image(rgb: np.ndarray, depth: np.ndarray, cam: rig.Camera, cfg: SceneConfig, s, idx: int,
+                  cam_index: int) -> np.ndarray:
+    """The image a degraded camera delivers: fog on the rendered range, then lens dirt (the same
+    blobs in every frame of a scene: their rng is keyed on the scene and the camera); black if
+    the camera failed."""
+    from .camera import depth_to_range
+    d = cfg.degrade
+    if cam.channel in d.dropped:
+        return np.zeros_like(rgb)
+    if d.alpha > 0:
+        rgb = D.fog_image(rgb, depth_to_range(depth, cam.K), d.alpha)
+    if d.lens_occlusion:
+        rgb = D.lens_dirt(rgb, d.lens_occlusion, scene_rng(s.seed, idx, 100 + cam_index))
+    return rgb
 
 
 def camera_time(t_end: float, cam: rig.Camera) -> float:
@@ -91,6 +127,10 @@ def generate_scene(s: MakeSettings, dataroot: Path, idx: int) -> int:
     renderer.set_world(world, key=(s.seed, idx, id(world)))
     scanner = LidarScanner(cfg.lidar, world)
     cams = rig.cameras(cfg.camera.resolution)
+    # Degradation draws from its own stream, so the clean sensor data (and the labels counted
+    # on them) are the same bytes with or without it: paired datasets.
+    rng_degrade = scene_rng(s.seed, idx, 2)
+    dropped_rings = D.choose_rings(cfg.degrade.beam_drop, rng_degrade) if cfg.degrade.beam_drop else np.zeros(0, int)
 
     scene_name = f"scene-{idx:04d}"
     log_name = f"simgen-{s.seed}-{idx:04d}"
@@ -125,7 +165,9 @@ def generate_scene(s: MakeSettings, dataroot: Path, idx: int) -> int:
     rec["scene"].append({"token": scene_tok, "log_token": log_tok, "nbr_samples": len(key_times),
                          "first_sample_token": sample_toks[0], "last_sample_token": sample_toks[-1],
                          "name": scene_name,
-                         "description": f"simgen preset {cfg.name}, seed {s.seed}, scene {idx}. {world.description}"})
+                         "description": " ".join(filter(None, [
+                             f"simgen preset {cfg.name}, seed {s.seed}, scene {idx}. {world.description}",
+                             cfg.degrade.describe()]))})
 
     def add_sample_data(channel, sd_tok, t, k_sample, is_key, filename, width, height, fmt):
         T = world.ego_pose(t)
@@ -146,11 +188,12 @@ def generate_scene(s: MakeSettings, dataroot: Path, idx: int) -> int:
         sweep = scanner.scan(float(t_end), rng_sensor)
         sd_tok = tok("sd", rig.LIDAR, j)
         fname = f"{'samples' if is_key else 'sweeps'}/{rig.LIDAR}/{log_name}__{rig.LIDAR}__{us(t_end)}.pcd.bin"
-        W.write_pointcloud(dataroot / fname, sweep.points_lidar)
+        points = degrade_sweep(sweep, cfg, dropped_rings, rng_degrade) if cfg.degrade.active else sweep.points_lidar
+        W.write_pointcloud(dataroot / fname, points)
         pose = add_sample_data(rig.LIDAR, sd_tok, float(t_end), k_sample, is_key, fname, 0, 0, "pcd")
         lidar_chain.append(rec["sample_data"][-1])
         if is_key:
-            _key_frame(s, world, renderer, cams, calib, rec, add_sample_data, cam_chains, instance_anns, sweep,
+            _key_frame(s, idx, world, renderer, cams, calib, rec, add_sample_data, cam_chains, instance_anns, sweep,
                        pose, float(t_end), k_sample, sample_toks[k_sample], dataroot, log_name, tok, us)
     for chain in [lidar_chain, *cam_chains.values()]:
         for a, b in zip(chain[:-1], chain[1:]):
@@ -166,7 +209,7 @@ def generate_scene(s: MakeSettings, dataroot: Path, idx: int) -> int:
     return len(key_times)
 
 
-def _key_frame(s, world: World, renderer, cams, calib, rec, add_sample_data, cam_chains, instance_anns, sweep,
+def _key_frame(s, idx: int, world: World, renderer, cams, calib, rec, add_sample_data, cam_chains, instance_anns, sweep,
                lidar_pose, t_key, k_sample, sample_tok, dataroot, log_name, tok, us):
     """Cameras, annotations and labels of one key frame."""
     cfg = s.cfg
@@ -177,12 +220,14 @@ def _key_frame(s, world: World, renderer, cams, calib, rec, add_sample_data, cam
     near = [i for i, a in enumerate(world.actors)
             if a.annotate and np.hypot(*(boxes_key[i, :2] - T_key[:2, 3])) <= ANNOTATION_RANGE]
     id_images, cam_poses, actor_poses = [], [], []
-    for cam in cams:
+    for cam_index, cam in enumerate(cams):
         t_cam = camera_time(t_key, cam)
         T_gc = world.ego_pose(t_cam) @ cam.T_ego_from_cam
         b = world.boxes_at(t_cam)
         poses = geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
-        rgb, _depth, ids = renderer.render(cam, T_gc, {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate})
+        rgb, depth, ids = renderer.render(cam, T_gc, {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate})
+        if cfg.degrade.active:
+            rgb = degrade_image(rgb, depth, cam, cfg, s, idx, cam_index)
         fname = f"samples/{cam.channel}/{log_name}__{cam.channel}__{us(t_cam)}.jpg"
         W.write_jpeg(dataroot / fname, rgb, cfg.camera.jpeg_quality)
         add_sample_data(cam.channel, tok("sd", cam.channel, k_sample), t_cam, k_sample, True, fname, Wd, Ht, "jpg")
@@ -238,6 +283,27 @@ def check_resume(s: MakeSettings, dataroot: Path) -> list[int]:
     return [i for i in range(s.n_scenes) if not W.part_path(dataroot, i).exists()]
 
 
+def write_degradation_record(s: MakeSettings, dataroot: Path) -> None:
+    """``<version>/degradation.json``: every degradation setting, the derived fog extinction and
+    visibility, the dropped rings per scene, and the pairing contract. Written for clean sets
+    too (all off), so that a set always says what it is."""
+    d = s.cfg.degrade
+    rings = {f"scene-{i:04d}": [int(r) for r in D.choose_rings(d.beam_drop, scene_rng(s.seed, i, 2))]
+             for i in range(s.n_scenes)} if d.beam_drop else {}
+    record = {
+        "settings": dataclasses.asdict(d),
+        "fog_alpha_per_m": d.alpha,
+        "fog_visibility_m": D.visibility_of(d.alpha) if d.alpha > 0 else None,
+        "failed_sensors": list(d.dropped),
+        "dropped_rings": rings,
+        "preset": s.cfg.name,
+        "seed": s.seed,
+        "labels": "clean world: sample_annotation, instance, sample and ego_pose equal those of the "
+                  "undegraded run with the same preset, seed and scene count",
+    }
+    W.write_atomic(dataroot / s.version / "degradation.json", W.dump_json(record))
+
+
 def make(s: MakeSettings, dataroot: Path, workers: int, progress: bool = True) -> dict:
     """Generate (or finish) a dataset. Returns a summary with timings and table sizes."""
     from tqdm import tqdm
@@ -266,5 +332,6 @@ def make(s: MakeSettings, dataroot: Path, workers: int, progress: bool = True) -
             pool.join()
         bar.close()
     counts = W.merge(dataroot, s.version, s.n_scenes, s.val_fraction)
+    write_degradation_record(s, dataroot)
     return {"scenes": s.n_scenes, "generated_scenes": len(todo), "samples": counts["sample"],
             "seconds": time.perf_counter() - start, "tables": counts}

@@ -1,0 +1,167 @@
+"""Degradation: exact fog on both sensors, lens dirt, rings, sector, dead sensors, pairing."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from conftest import TINY_ARGS, run_simgen
+
+from simgen import degrade as D
+from simgen.config import load_preset, with_degradation
+from simgen.lidar import LidarScanner
+from simgen.pipeline import MakeSettings, build_world, degrade_sweep
+from simgen.rig import T_ego_from_lidar
+
+
+def test_camera_fog_is_koschmieder_exactly():
+    rng = np.random.default_rng(0)
+    J = rng.integers(0, 256, (40, 60, 3)).astype(np.uint8)
+    d = rng.uniform(0.5, 300.0, (40, 60))
+    d[:5] = 0.0                                          # sky: no hit
+    alpha = D.FOG_ALPHA[4]
+    out = D.fog_image(J, d, alpha)
+    t = np.where(d > 0, np.exp(-alpha * d), 0.0)[..., None]
+    expected = np.round(J * t + D.AIRLIGHT * (1 - t))
+    np.testing.assert_array_equal(out, expected.astype(np.uint8))
+    assert (out[:5] == np.round(D.AIRLIGHT).astype(np.uint8)).all()      # the sky is all airlight
+    np.testing.assert_array_equal(D.fog_image(J, d, 0.0)[5:], J[5:])     # alpha 0 changes nothing
+
+
+def test_visibility_and_alpha_are_inverse():
+    for a in D.FOG_ALPHA[1:]:
+        assert D.alpha_of_visibility(D.visibility_of(a)) == pytest.approx(a)
+    assert D.visibility_of(0.06) == pytest.approx(math.log(20) / 0.06)
+
+
+def _synthetic_returns(ranges, rho_cos):
+    n = len(ranges)
+    dirs = np.tile([[0.0, 1.0, 0.0]], (n, 1))
+    pts = np.zeros((n, 5), np.float32)
+    pts[:, :3] = dirs * ranges[:, None]
+    return pts, dirs
+
+
+def test_lidar_fog_hard_returns_attenuate_as_exp_minus_2_alpha_r():
+    """Strong targets (the fog cannot beat them) keep their place; power scales exp(-2 alpha R)."""
+    ranges = np.linspace(5.0, 40.0, 36)
+    rho_cos = np.full(36, 0.9)
+    pts, dirs = _synthetic_returns(ranges, rho_cos)
+    ref = 2.0                                          # intensity unsaturated: P ref^2 < 1
+    alpha = D.FOG_ALPHA[2]
+    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, alpha, 1e-9, ref, np.random.default_rng(0))
+    assert not is_fog.any() and len(out) == 36
+    np.testing.assert_allclose(out[:, :3], pts[:, :3])                  # not moved
+    clean = 255 * rho_cos / ranges**2 * ref**2
+    ratio = out[:, 3] / clean
+    np.testing.assert_allclose(ratio, np.exp(-2 * alpha * ranges), rtol=0, atol=0.5 / clean.min() + 1e-6)
+
+
+def test_lidar_fog_moves_weak_far_returns_to_the_fog_range_along_the_ray():
+    ranges = np.array([60.0, 80.0])
+    rho_cos = np.array([0.05, 0.05])
+    pts, dirs = _synthetic_returns(ranges, rho_cos)
+    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 5e-6, 6.0, np.random.default_rng(0))
+    assert is_fog.all()
+    r = np.linalg.norm(out[:, :3], axis=1)
+    assert ((r > 1.0) & (r < 5.0)).all()                                # near the sensor
+    np.testing.assert_allclose(out[:, :3] / r[:, None], dirs, atol=1e-6)  # on the same ray
+    # A return lost to attenuation when the fog response is below the threshold too.
+    out2, _ = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 1.0, 6.0, np.random.default_rng(0))
+    assert len(out2) == 0
+
+
+@pytest.fixture(scope="module")
+def clean_sweep():
+    cfg = load_preset("tiny")
+    s = MakeSettings(cfg, 1, 7, 2, "v1.0-sim")
+    world = build_world(s, 0)
+    return cfg, LidarScanner(cfg.lidar, world).scan(0.5, np.random.default_rng(0))
+
+
+def test_lidar_fog_on_a_scene_monotone_in_severity(clean_sweep):
+    cfg, sweep = clean_sweep
+    near, far, total = [], [], []
+    for sev in range(6):
+        c = with_degradation(cfg, fog=sev)
+        pts = degrade_sweep(sweep, c, np.zeros(0, int), np.random.default_rng(1))
+        r = np.linalg.norm(pts[:, :3], axis=1)
+        near.append(int((r < 10).sum()))
+        far.append(int((r > 30).sum()))
+        total.append(len(pts))
+    assert total == sorted(total, reverse=True)                    # never more points
+    assert far == sorted(far, reverse=True) and far[5] < far[0] // 4   # the far scene fades away
+    assert near[1:] == sorted(near[1:]) and near[5] > near[0]      # fog returns pile up near the sensor
+
+
+def test_beam_drop_and_sector(clean_sweep):
+    cfg, sweep = clean_sweep
+    rings = D.choose_rings(5, np.random.default_rng(3))
+    pts = degrade_sweep(sweep, with_degradation(cfg, beam_drop=5), rings, np.random.default_rng(1))
+    kept = set(np.unique(pts[:, 4]).astype(int))
+    before = set(np.unique(sweep.points_lidar[:, 4]).astype(int))
+    assert kept == before - set(rings.tolist()) and len(rings) == 5
+    n_expected = (~np.isin(sweep.points_lidar[:, 4], rings)).sum()
+    assert len(pts) == n_expected
+
+    pts = degrade_sweep(sweep, with_degradation(cfg, lidar_fov=90.0), rings[:0], np.random.default_rng(1))
+    # The ego's forward axis in the LIDAR_TOP frame: about +y (the mount is rotated by -90 deg).
+    fwd = T_ego_from_lidar()[:3, :3].T @ np.array([1.0, 0.0, 0.0])
+    assert fwd[1] > 0.99
+
+    def azimuth(p):
+        a = np.degrees(np.arctan2(p[:, 1], p[:, 0]) - np.arctan2(fwd[1], fwd[0]))
+        return (a + 180) % 360 - 180
+
+    assert np.abs(azimuth(pts)).max() <= 45.0 and len(pts) > 0
+    assert len(pts) == (np.abs(azimuth(sweep.points_lidar)) <= 45.0).sum()
+    assert len(degrade_sweep(sweep, with_degradation(cfg, drop_sensors="LIDAR_TOP"), rings[:0],
+                             np.random.default_rng(1))) == 0
+
+
+def test_lens_dirt_is_deterministic_and_grows_with_severity():
+    img = np.full((90, 160, 3), 200, np.uint8)
+    a = D.lens_dirt(img, 2, np.random.default_rng(5))
+    b = D.lens_dirt(img, 2, np.random.default_rng(5))
+    np.testing.assert_array_equal(a, b)
+    covered = [int((np.abs(D.lens_dirt(img, s, np.random.default_rng(5)).astype(int) - 200).sum(-1) > 30).sum())
+               for s in (1, 3, 5)]
+    assert 0 < covered[0] < covered[1] < covered[2]
+
+
+def test_paired_sets_and_dead_sensors(tmp_path, tiny_dataset):
+    """A fog-5 run with dead sensors pairs with the clean tiny set: identical annotation tables,
+    black images and empty clouds where sensors failed, and the devkit loads it."""
+    out = tmp_path / "fog"
+    run_simgen("make", "--out", out, "--workers", "1", *TINY_ARGS, "--fog", "5", "--beam-drop", "4",
+               "--drop-sensor", "CAM_FRONT,LIDAR_TOP")
+    for table in ("sample_annotation", "instance", "ego_pose", "sample"):
+        assert (out / "v1.0-sim" / f"{table}.json").read_bytes() == \
+               (tiny_dataset / "v1.0-sim" / f"{table}.json").read_bytes(), table
+    rec = json.loads((out / "v1.0-sim" / "degradation.json").read_text())
+    assert rec["settings"]["fog"] == 5 and rec["failed_sensors"] == ["CAM_FRONT", "LIDAR_TOP"]
+    assert len(rec["dropped_rings"]["scene-0000"]) == 4
+
+    from nuscenes import NuScenes
+    from nuscenes.utils.data_classes import LidarPointCloud
+    import cv2
+    nusc = NuScenes("v1.0-sim", str(out), verbose=False)
+    assert "fog" in nusc.scene[0]["description"] and "CAM_FRONT" in nusc.scene[0]["description"]
+    sample = nusc.sample[0]
+    front = cv2.imread(str(out / nusc.get("sample_data", sample["data"]["CAM_FRONT"])["filename"]))
+    assert front is not None and front.max() == 0
+    back = cv2.imread(str(out / nusc.get("sample_data", sample["data"]["CAM_BACK"])["filename"]))
+    assert back.mean() > 100                                  # foggy, bright, not black
+    path, boxes, _ = nusc.get_sample_data(sample["data"]["LIDAR_TOP"])
+    assert LidarPointCloud.from_file(path).points.shape[1] == 0 and len(boxes) > 0
+
+
+def test_bad_degradation_settings_exit_2(tmp_path):
+    for args, needle in ((["--fog", "7"], "--fog"), (["--fog-visibility", "-5"], "--fog-visibility"),
+                         (["--drop-sensor", "CAM_TOP"], "CAM_TOP"), (["--beam-drop", "33"], "--beam-drop")):
+        proc = run_simgen("make", "--out", tmp_path / "x", *TINY_ARGS, *args, check=False)
+        assert proc.returncode == 2, (args, proc.stderr)
+        line = proc.stderr.strip()
+        assert len(line.splitlines()) == 1 and needle in line and "Traceback" not in line
+        assert not (tmp_path / "x").exists()
