@@ -82,7 +82,7 @@ def cmd_eval(args) -> None:
     check_writable(args.out)
     model, _ = _load(args)
     ds = NuScenesDetection(args.data, args.version, args.split, model.cfg.data_config())
-    results = predict_split(model, ds, batch_size=args.batch_size)
+    results = predict_split(model, ds, batch_size=args.batch_size, score_thr=args.score_thr)
     path = write_results(Path(args.out) / "results.json", results)
     summary = evaluate(ds.nusc, path, args.split, args.out, model.cfg.class_names, plots=not args.no_plots)
     print(format_summary(summary))
@@ -106,7 +106,7 @@ def cmd_predict(args) -> None:
     check_writable(args.out, is_file=True)
     model, _ = _load(args)
     ds = NuScenesDetection(args.data, args.version, args.split, model.cfg.data_config())
-    results = predict_split(model, ds, batch_size=args.batch_size)
+    results = predict_split(model, ds, batch_size=args.batch_size, score_thr=args.score_thr)
     write_results(args.out, results)
     n = sum(len(v) for v in results.values())
     print(f"wrote {n} boxes for {len(results)} samples to {args.out}")
@@ -161,6 +161,7 @@ def cmd_show(args) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from clfbev.config import VARIANTS
+    from clfbev.evaluate import EVAL_SCORE_THR
     from clfbev.train import VERSION, add_arguments
 
     ap = argparse.ArgumentParser(prog="clfbev", description="CL-FusionBEV: camera + lidar BEV fusion detector "
@@ -181,6 +182,10 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--config", default=None, help="refuse a checkpoint not trained with this config")
         p.add_argument("--variant", default=None, choices=VARIANTS, help="refuse a checkpoint of another variant")
         p.add_argument("--batch-size", type=int, default=1)
+        if ckpt_required:
+            p.add_argument("--score-thr", type=float, default=EVAL_SCORE_THR,
+                           help=f"keep boxes scoring at least this (default {EVAL_SCORE_THR}: AP integrates "
+                                "over all scores; at most 500 boxes per sample)")
 
     p = sub.add_parser("eval", help="official nuScenes DetectionEval of a checkpoint on a split",
                        description="Predict a split, write results.json (nuScenes submission format) and run the "

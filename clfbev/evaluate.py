@@ -206,10 +206,16 @@ def _render_curves(ev, metrics, details) -> None:
     plt.close("all")
 
 
+# Evaluation keeps low-confidence boxes (up to MAX_PER_SAMPLE): average precision integrates over
+# the whole score range, and a cut at the config's display threshold would only lose recall.
+EVAL_SCORE_THR = 0.01
+
+
 @torch.no_grad()
-def predict_split(model, dataset: NuScenesDetection, batch_size: int = 1) -> dict[str, list[dict]]:
+def predict_split(model, dataset: NuScenesDetection, batch_size: int = 1,
+                  score_thr: float | None = EVAL_SCORE_THR) -> dict[str, list[dict]]:
     """Run ``model`` (in eval mode) over every sample of ``dataset``; nuScenes results dict with
-    one (possibly empty) entry per sample token."""
+    one (possibly empty) entry per sample token. ``score_thr`` None: the config's threshold."""
     model.eval()
     device = next(model.parameters()).device
     class_names = model.cfg.class_names
@@ -217,6 +223,6 @@ def predict_split(model, dataset: NuScenesDetection, batch_size: int = 1) -> dic
     results: dict[str, list[dict]] = {}
     for batch in loader:
         batch: Batch = batch.to(device)
-        dets = model.predict(batch)
+        dets = model.predict(batch, score_thr=score_thr)
         results.update(detections_to_results(dets, batch.sample_tokens, batch.T_global_from_lidar.cpu(), class_names))
     return results
