@@ -1,9 +1,10 @@
-"""`clfbev train | eval | predict | show`: the detector's command line.
+"""`clfbev train | eval | predict | show | robustness`: the detector's command line.
 
     clfbev train   --data DIR --config tiny --variant full --out RUN [--epochs N | --max-steps N] [--resume]
     clfbev eval    --data DIR --ckpt RUN/best.pt [--split sim-val] --out DIR
     clfbev predict --data DIR --ckpt CKPT --out results.json [--split all]
     clfbev show    --data DIR --results results.json [--sample I] --out FILE.png [--attention --ckpt CKPT]
+    clfbev robustness --ckpt NAME=CKPT ... --set NAME=DATAROOT ... [--corrupt NAME:SEV ...] --out DIR
 
 Bad input (a missing dataroot, an unknown split, a corrupt or mismatched checkpoint, an invalid
 config file, an unwritable output) gets one line on stderr naming the file or option, and exit
@@ -81,7 +82,7 @@ def cmd_eval(args) -> None:
     from clfbev.evaluate import evaluate, predict_split, write_results
     check_writable(args.out)
     model, _ = _load(args)
-    ds = NuScenesDetection(args.data, args.version, args.split, model.cfg.data_config())
+    ds = NuScenesDetection(args.data, args.version, args.split, model.cfg.data_config(), args.corrupt)
     results = predict_split(model, ds, batch_size=args.batch_size, score_thr=args.score_thr)
     path = write_results(Path(args.out) / "results.json", results)
     summary = evaluate(ds.nusc, path, args.split, args.out, model.cfg.class_names, plots=not args.no_plots)
@@ -98,6 +99,28 @@ def format_summary(summary: dict) -> str:
     for name, ap in summary["mean_dist_aps"].items():
         lines.append(f"{name:22s} {ap:6.3f} " + " ".join(f"{tp[name][c]:7.3f}" for c in cols))
     return "\n".join(lines)
+
+
+def _named_paths(items: list[str], flag: str) -> list[tuple[str, Path]]:
+    out = []
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(f"{flag} {item}: expected NAME=PATH")
+        out.append((name, Path(path)))
+    return out
+
+
+def cmd_robustness(args) -> None:
+    from clfbev import robustness
+    check_writable(args.out)
+    ckpts = _named_paths(args.ckpt, "--ckpt")
+    conditions = robustness.conditions_of(_named_paths(args.set, "--set"), args.corrupt, args.version)
+    record = robustness.run(ckpts, conditions, Path(args.out), args.split, args.version)
+    for name, m in record["models"].items():
+        mce = f", mCE {m['mCE']:.3f}" if "mCE" in m else ""
+        print(f"{name}: clean NDS {m['metrics'][record['clean']]['NDS']:.4f}, mRR {m['mRR']:.3f}{mce}")
+    print(f"wrote robustness.json, robustness.md and robustness.png to {args.out}")
 
 
 def cmd_predict(args) -> None:
@@ -159,6 +182,18 @@ def cmd_show(args) -> None:
 
 # ---------------------------------------------------------------- parser
 
+CORRUPT_HELP = ("beam_missing:1-32 | density:0-1 | fov:DEGREES | lidar_missing | camera_crash:1-6 | "
+                "frame_lost:0-1 | extrinsic_noise:DEG (deterministic per sample token)")
+
+
+def _corruption(text: str):
+    from clfbev.corruptions import parse
+    try:
+        return parse(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     from clfbev.config import VARIANTS
     from clfbev.evaluate import EVAL_SCORE_THR
@@ -195,7 +230,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", default="sim-val", help="split to evaluate (splits.json key or official)")
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the devkit's PR / TP curve plots")
+    p.add_argument("--corrupt", action="append", default=[], type=_corruption, metavar="NAME:SEVERITY",
+                   help=CORRUPT_HELP)
     p.set_defaults(fn=cmd_eval)
+
+    p = sub.add_parser("robustness", help="every checkpoint on paired degraded sets and load-time corruptions",
+                       description="Evaluate checkpoints on a clean set, paired degraded sets (simgen fog, lens "
+                       "dirt, ...) and load-time corruptions, all through the official DetectionEval. Writes "
+                       "robustness.json, robustness.md (NDS/mAP, RR and mRR, CE and mCE against the concat "
+                       "checkpoint) and robustness.png to --out.")
+    p.add_argument("--ckpt", action="append", required=True, metavar="NAME=CKPT", help="a checkpoint (repeat)")
+    p.add_argument("--set", action="append", required=True, metavar="NAME=DATAROOT",
+                   help="a dataroot (repeat); the first is the clean reference, the others must be paired with it")
+    p.add_argument("--corrupt", action="append", default=[], type=_corruption, metavar="NAME:SEVERITY",
+                   help="a load-time corruption of the clean set, one condition each (repeat). " + CORRUPT_HELP)
+    p.add_argument("--split", default="sim-val", help="split to evaluate")
+    p.add_argument("--version", default=VERSION, help="table folder under each dataroot")
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.set_defaults(fn=cmd_robustness)
 
     p = sub.add_parser("predict", help="results JSON for any dataroot (annotated or not)",
                        description="Run a checkpoint on a dataroot and write nuScenes-format results.")

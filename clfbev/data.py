@@ -243,12 +243,16 @@ class NuScenesDetection(torch.utils.data.Dataset):
     split : an official split name, a key of ``<dataroot>/<version>/splits.json``, or
         :data:`ALL_SCENES` for every scene of the version (e.g. a dataroot without splits).
     cfg : :class:`DataConfig`.
+    corruptions : :class:`clfbev.corruptions.Corruption` s applied to every sample (robustness
+        evaluation), deterministic per sample token.
     """
 
-    def __init__(self, dataroot: str | Path, version: str, split: str, cfg: DataConfig = DataConfig()):
+    def __init__(self, dataroot: str | Path, version: str, split: str, cfg: DataConfig = DataConfig(),
+                 corruptions: tuple = ()):
         from nuscenes import NuScenes
         self.root = Path(dataroot)
         self.cfg, self.version, self.split = cfg, version, split
+        self.corruptions = tuple(corruptions)     # clfbev.corruptions.Corruption, applied at load time
         if not (self.root / version).is_dir():
             raise DataError(f"no nuScenes tables at {self.root / version} (dataroot {self.root}, version {version})")
         if split != ALL_SCENES:
@@ -279,7 +283,14 @@ class NuScenesDetection(torch.utils.data.Dataset):
         T_global_from_lidar = self._T_global_from_sensor(lidar_sd)
         T_lidar_from_global = np.linalg.inv(T_global_from_lidar)
         images, K, T_lidar_from_cam, A = self._cameras(sample, T_lidar_from_global)
-        points = self._points(lidar_sd, T_lidar_from_global)
+        points, rings = self._points(lidar_sd, T_lidar_from_global)
+        if self.corruptions:
+            from clfbev import corruptions as C
+            calib = self.nusc.get("calibrated_sensor", lidar_sd["calibrated_sensor_token"])
+            forward_lidar = transform_from(calib["translation"], calib["rotation"])[:3, :3].T @ np.array([1.0, 0, 0])
+            points = C.corrupt_points(points, rings, forward_lidar, C.lidar_corruptions(self.corruptions), sample["token"])
+            images, T_lidar_from_cam = C.corrupt_cameras(images, T_lidar_from_cam, C.camera_corruptions(self.corruptions),
+                                                         sample["token"])
         boxes, labels = self._boxes(sample, T_lidar_from_global)
         return Sample(
             images=torch.from_numpy(images),
@@ -320,9 +331,10 @@ class NuScenesDetection(torch.utils.data.Dataset):
             As.append(np.diag([W / w0, H / h0, 1.0]))
         return np.stack(images), np.stack(Ks), np.stack(Ts), np.stack(As)
 
-    def _points(self, key_sd: dict, T_lidar_from_global: np.ndarray) -> np.ndarray:
-        """(n, 5) float32 points of the key sweep and its previous sweeps, key-frame lidar frame."""
-        chunks, sd = [], key_sd
+    def _points(self, key_sd: dict, T_lidar_from_global: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 5) float32 points of the key sweep and its previous sweeps, key-frame lidar frame
+        (x, y, z, intensity / 255, time lag), and their (n,) ring indices."""
+        chunks, rings, sd = [], [], key_sd
         for k in range(self.cfg.n_sweeps):
             raw = load_points(self.root / sd["filename"])
             xyz = raw[:, :3]
@@ -331,13 +343,14 @@ class NuScenesDetection(torch.utils.data.Dataset):
                 xyz = (xyz.astype(np.float64) @ T_key_from_sweep[:3, :3].T + T_key_from_sweep[:3, 3]).astype(np.float32)
             lag = (key_sd["timestamp"] - sd["timestamp"]) * 1e-6       # integer us -> s
             chunks.append(np.column_stack([xyz, raw[:, 3] / np.float32(255.0), np.full(len(raw), lag, np.float32)]))
+            rings.append(raw[:, 4])
             if not sd["prev"]:
                 break
             sd = self.nusc.get("sample_data", sd["prev"])
         pts = np.concatenate(chunks).astype(np.float32)
         lo, hi = np.asarray(self.cfg.point_range[:3]), np.asarray(self.cfg.point_range[3:])
         keep = ((pts[:, :3] >= lo) & (pts[:, :3] < hi)).all(axis=1)
-        return np.ascontiguousarray(pts[keep])
+        return np.ascontiguousarray(pts[keep]), np.concatenate(rings)[keep]
 
     def _boxes(self, sample: dict, T_lidar_from_global: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """gt_boxes (M, 9) float32 and gt_labels (M,) int64 in the key-frame lidar frame."""

@@ -63,7 +63,9 @@ class TrainConfig:
     lr, weight_decay : AdamW (paper: 2e-4, 1e-2). warmup_frac : linear warmup over this share of
     the steps, then cosine decay to ``lr * min_lr_ratio``. grad_clip : max global grad norm.
     batch_size : samples per step and rank. epochs / max_steps : the length (max_steps wins).
-    augment : random global + image augmentation. workers : DataLoader processes.
+    augment : random global + image augmentation. modality_dropout : probability that a training
+    sample loses one modality (camera or lidar, even odds): zero images or no points, the input
+    a failed sensor gives at test time. workers : DataLoader processes.
     ckpt_minutes : also write ``last.pt`` this often (besides every epoch). save_every_steps :
     also write it every N steps (0: off). val_split : split validated every epoch ('' : none).
     """
@@ -81,6 +83,7 @@ class TrainConfig:
     epochs: int = 20
     max_steps: int = 0
     augment: bool = True
+    modality_dropout: float = 0.0
     workers: int = 0
     ckpt_minutes: float = 10.0
     save_every_steps: int = 0
@@ -101,11 +104,14 @@ def lr_at(step: int, total: int, tc: TrainConfig) -> float:
 
 class EpochSamples(torch.utils.data.Dataset):
     """The training samples of one epoch: sample i is augmented with rng ``(seed, epoch, i)``
-    (independent of the worker that loads it), then cropped to the model's range."""
+    (independent of the worker that loads it), then cropped to the model's range; with
+    ``modality_dropout`` p, it then loses its camera or its lidar input with probability p
+    (rng ``(seed, epoch, i, 1)``)."""
 
     def __init__(self, base: NuScenesDetection, seed: int, epoch: int, augment: AugmentConfig | None,
-                 pc_range: tuple[float, ...]) -> None:
+                 pc_range: tuple[float, ...], modality_dropout: float = 0.0) -> None:
         self.base, self.seed, self.epoch, self.augment, self.pc_range = base, seed, epoch, augment, pc_range
+        self.modality_dropout = modality_dropout
 
     def __len__(self) -> int:
         return len(self.base)
@@ -115,6 +121,11 @@ class EpochSamples(torch.utils.data.Dataset):
         if self.augment is not None:
             sample = random_augment(sample, np.random.default_rng((self.seed, self.epoch, i)), self.augment)
             sample = crop_to_range(sample, self.pc_range)
+        if self.modality_dropout > 0:
+            u, which = np.random.default_rng((self.seed, self.epoch, i, 1)).random(2)
+            if u < self.modality_dropout:
+                sample = (replace(sample, images=torch.zeros_like(sample.images)) if which < 0.5
+                          else replace(sample, points=sample.points[:0]))
         return sample
 
 
@@ -286,7 +297,7 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
         while step < total:
             batches = epoch_batches(len(train_set), tc.batch_size, tc.seed, epoch, rank, world)
             done_in_epoch = step - epoch * steps_per_epoch
-            epoch_set = EpochSamples(train_set, tc.seed, epoch, augment, cfg.pc_range)
+            epoch_set = EpochSamples(train_set, tc.seed, epoch, augment, cfg.pc_range, tc.modality_dropout)
             loader = torch.utils.data.DataLoader(epoch_set, batch_sampler=batches[done_in_epoch:],
                                                  collate_fn=collate, num_workers=tc.workers)
             for batch in loader:
@@ -392,6 +403,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warmup-frac", type=float, default=d.warmup_frac, help="share of steps of linear warmup")
     p.add_argument("--grad-clip", type=float, default=d.grad_clip, help="max global gradient norm")
     p.add_argument("--no-augment", dest="augment", action="store_false", help="no random augmentation")
+    p.add_argument("--modality-dropout", type=float, default=0.0, metavar="P",
+                   help="drop the camera or the lidar input of a sample with probability P (robust fusion)")
     p.add_argument("--workers", type=int, default=d.workers, help="DataLoader worker processes")
     p.add_argument("--ckpt-minutes", type=float, default=d.ckpt_minutes, help="also checkpoint this often")
     p.add_argument("--save-every-steps", type=int, default=0, help="also checkpoint every N steps")
@@ -405,14 +418,15 @@ def train_config_from(args: argparse.Namespace) -> TrainConfig:
     checks = {"--batch-size": args.batch_size >= 1, "--epochs": args.epochs >= 1, "--max-steps": args.max_steps >= 0,
               "--lr": args.lr > 0, "--weight-decay": args.weight_decay >= 0, "--grad-clip": args.grad_clip > 0,
               "--warmup-frac": 0 <= args.warmup_frac < 1, "--workers": args.workers >= 0,
-              "--ckpt-minutes": args.ckpt_minutes > 0, "--save-every-steps": args.save_every_steps >= 0}
+              "--ckpt-minutes": args.ckpt_minutes > 0, "--modality-dropout": 0 <= args.modality_dropout <= 1, "--save-every-steps": args.save_every_steps >= 0}
     bad = [k for k, ok in checks.items() if not ok]
     if bad:
         raise ValueError(f"out-of-range value for {', '.join(bad)}")
     return TrainConfig(train_split=args.train_split, val_split=args.val_split, version=args.version, seed=args.seed,
                        lr=args.lr, weight_decay=args.weight_decay, warmup_frac=args.warmup_frac,
                        grad_clip=args.grad_clip, batch_size=args.batch_size, epochs=args.epochs,
-                       max_steps=args.max_steps, augment=args.augment, workers=args.workers,
+                       max_steps=args.max_steps, augment=args.augment, modality_dropout=args.modality_dropout,
+                       workers=args.workers,
                        ckpt_minutes=args.ckpt_minutes, save_every_steps=args.save_every_steps)
 
 
