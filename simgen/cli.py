@@ -96,6 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--beam-drop", type=int, default=None, metavar="N", help="drop N of the 32 lidar rings")
     dg.add_argument("--lidar-fov", type=float, default=None, metavar="DEGREES",
                     help="keep only this sector around the ego's forward axis")
+    dg.add_argument("--occlusion", default=None, choices=("none", "light", "heavy"),
+                    help="extra static occluders (vans, hedges, trees, poles) along the ego's route")
     dg.add_argument("--drop-sensor", default=None, metavar="CHANNEL[,CHANNEL]",
                     help="failed sensors: a black image / an empty point cloud (the records and files exist)")
 
@@ -152,7 +154,8 @@ def _make(args) -> int:
     if args.resolution:
         cfg = with_resolution(cfg, *args.resolution)
     cfg = with_degradation(cfg, fog=args.fog, fog_visibility=args.fog_visibility, lens_occlusion=args.lens_occlusion,
-                           beam_drop=args.beam_drop, lidar_fov=args.lidar_fov, drop_sensors=args.drop_sensor)
+                           beam_drop=args.beam_drop, lidar_fov=args.lidar_fov, drop_sensors=args.drop_sensor,
+                           occlusion=args.occlusion)
     if not re.fullmatch(r"[A-Za-z0-9._-]+", args.version):
         raise ConfigError(f"--version {args.version!r}: use letters, digits, '.', '_' and '-' only")
     check_writable(args.out)

@@ -100,6 +100,9 @@ class DegradeConfig:
     lens_occlusion : 0-5 dirt blobs on every camera. beam_drop : rings removed (of 32).
     lidar_fov : degrees kept around the ego's forward axis (360 = all).
     drop_sensors : comma-separated channels that deliver nothing (black image / empty cloud).
+    occlusion : none | light | heavy extra static occluders along the ego's route
+    (simgen/occluders.py). Unlike the others it changes the world, hence the annotations'
+    visibility and num_lidar_pts (never which objects exist).
     """
     fog: int = field(default=0, metadata=_rng(0, 5))
     fog_visibility: float = field(default=0.0, metadata=_rng(0.0, 100000.0))
@@ -107,6 +110,7 @@ class DegradeConfig:
     beam_drop: int = field(default=0, metadata=_rng(0, 32))
     lidar_fov: float = field(default=360.0, metadata=_rng(1.0, 360.0))
     drop_sensors: str = ""
+    occlusion: str = field(default="none", metadata=_rng(choices=("none", "light", "heavy")))
 
     @property
     def alpha(self) -> float:
@@ -136,6 +140,8 @@ class DegradeConfig:
             parts.append(f"lidar FOV {self.lidar_fov:g} deg")
         if self.dropped:
             parts.append(f"failed sensors {', '.join(self.dropped)}")
+        if self.occlusion != "none":
+            parts.append(f"{self.occlusion} occlusion")
         return ("Degraded: " + "; ".join(parts) + ".") if parts else ""
 
 
@@ -202,6 +208,8 @@ def _build(cls, data: Any, where: str):
         elif typ is str:
             if not isinstance(value, str):
                 raise ConfigError(f"{sub}: expected a string, got {value!r}")
+            if meta.get("choices") and value not in meta["choices"]:
+                raise ConfigError(f"{sub}: {value!r} is not one of {', '.join(meta['choices'])}")
             kwargs[name] = value
         else:
             kwargs[name] = _check_number(value, typ, meta, sub)
@@ -259,8 +267,13 @@ def with_degradation(cfg: SceneConfig, **flags) -> SceneConfig:
         if value is None:
             continue
         flag = "--" + {"drop_sensors": "drop-sensor"}.get(name, name.replace("_", "-"))
-        if hints[name] is str:
+        if name == "drop_sensors":
             check_channels(value, flag)
+            values[name] = value
+        elif hints[name] is str:
+            choices = meta[name].metadata.get("choices")
+            if choices and value not in choices:
+                raise ConfigError(f"{flag}: {value!r} is not one of {', '.join(choices)}")
             values[name] = value
         else:
             values[name] = _check_number(value, hints[name], dict(meta[name].metadata), flag)

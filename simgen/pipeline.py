@@ -22,7 +22,9 @@ from . import labels
 from . import rig
 from . import writer as W
 from .config import ConfigError, SceneConfig
+from .layout import Grid
 from .lidar import LidarScanner
+from .occluders import add_occluders
 from .scene import SWEEPS_PER_KEYFRAME, keyframe_times, sample_world, sweep_end_times
 from .world import CATEGORY, World
 
@@ -115,6 +117,9 @@ def build_world(s: MakeSettings, idx: int) -> World:
     world = sample_world(s.cfg, rng_world, s.samples_per_scene)
     world.meta.update(sun_azimuth=float(rng_world.uniform(-np.pi, np.pi)),
                       sun_elevation=float(rng_world.uniform(0.5, 1.2)))
+    if s.cfg.degrade.occlusion != "none":
+        # Own stream, after the world is complete: the clean world's content is untouched.
+        world = add_occluders(world, Grid(s.cfg.layout), s.cfg.degrade.occlusion, scene_rng(s.seed, idx, 3))
     return world
 
 
@@ -298,8 +303,11 @@ def write_degradation_record(s: MakeSettings, dataroot: Path) -> None:
         "dropped_rings": rings,
         "preset": s.cfg.name,
         "seed": s.seed,
-        "labels": "clean world: sample_annotation, instance, sample and ego_pose equal those of the "
-                  "undegraded run with the same preset, seed and scene count",
+        "labels": ("clean world: sample_annotation, instance, sample and ego_pose equal those of the "
+                   "undegraded run with the same preset, seed and scene count"
+                   if d.occlusion == "none" else
+                   "occluders are part of the world: the same objects, tracks and poses as the clean run, but "
+                   "sample_annotation visibility and num_lidar_pts reflect the occluders"),
     }
     W.write_atomic(dataroot / s.version / "degradation.json", W.dump_json(record))
 

@@ -165,3 +165,37 @@ def test_bad_degradation_settings_exit_2(tmp_path):
         line = proc.stderr.strip()
         assert len(line.splitlines()) == 1 and needle in line and "Traceback" not in line
         assert not (tmp_path / "x").exists()
+
+
+def test_occluders_keep_every_object_and_only_lower_visibility_and_points(tmp_path, tiny_dataset):
+    out = tmp_path / "occ"
+    run_simgen("make", "--out", out, "--workers", "1", *TINY_ARGS, "--occlusion", "heavy")
+    for table in ("instance", "ego_pose", "sample"):
+        assert (out / "v1.0-sim" / f"{table}.json").read_bytes() == \
+               (tiny_dataset / "v1.0-sim" / f"{table}.json").read_bytes(), table
+    occ = json.loads((out / "v1.0-sim" / "sample_annotation.json").read_text())
+    ref = json.loads((tiny_dataset / "v1.0-sim" / "sample_annotation.json").read_text())
+    assert [a["token"] for a in occ] == [a["token"] for a in ref]           # every object still exists
+    for a, b in zip(occ, ref):
+        assert {k: v for k, v in a.items() if k not in ("visibility_token", "num_lidar_pts")} == \
+               {k: v for k, v in b.items() if k not in ("visibility_token", "num_lidar_pts")}
+        assert a["num_lidar_pts"] <= b["num_lidar_pts"]                      # occluders only block rays
+    assert sum(a["num_lidar_pts"] for a in occ) < sum(a["num_lidar_pts"] for a in ref)
+    assert sum(int(a["visibility_token"]) for a in occ) < sum(int(b["visibility_token"]) for b in ref)
+
+
+def test_occluders_never_touch_an_actor():
+    from simgen import geometry as geo
+    cfg = with_degradation(load_preset("tiny"), occlusion="heavy")
+    for idx in range(3):
+        world = build_world(MakeSettings(cfg, 3, 7, 3, "v1.0-sim"), idx)
+        clean = build_world(MakeSettings(load_preset("tiny"), 3, 7, 3, "v1.0-sim"), idx)
+        n_new = len(world.static_boxes) - len(clean.static_boxes)
+        assert n_new == world.meta["occluders"] >= 4
+        np.testing.assert_array_equal(world.xy, clean.xy)                   # the same tracks
+        new = world.static_boxes[-n_new:]
+        for k in range(0, len(world.times), 5):
+            boxes = world.boxes_at(float(world.times[k]))
+            a = np.repeat(new, len(boxes), 0)
+            b = np.tile(boxes, (len(new), 1))
+            assert not geo.bev_overlap_pairwise(a, b).any()
