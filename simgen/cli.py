@@ -86,6 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
     mk.add_argument("--gl", choices=("egl", "osmesa"), default=None,
                     help="OpenGL platform [egl, or $PYOPENGL_PLATFORM]; osmesa is the slow fallback")
     mk.add_argument("--quiet", action="store_true", help="no progress bar")
+    mk.add_argument("--renderer", choices=("pyrender", "mitsuba"), default=None,
+                    help="camera renderer [preset's: pyrender]; mitsuba path-traces (seconds per image)")
+    mk.add_argument("--spp", type=int, default=None, help="Mitsuba samples per pixel [preset's: 16]")
     dg = mk.add_argument_group("degradation (overrides the preset's 'degrade' section; labels stay clean, "
                                "so a degraded run pairs with the clean run of the same seed)")
     dg.add_argument("--fog", type=int, default=None, metavar="0-5",
@@ -148,11 +151,12 @@ def _run(args) -> int:
 
 
 def _make(args) -> int:
-    from .config import load_preset, with_degradation, with_resolution
+    from .config import load_preset, with_degradation, with_renderer, with_resolution
     from .pipeline import MakeSettings, make
     cfg = load_preset(args.preset)
     if args.resolution:
         cfg = with_resolution(cfg, *args.resolution)
+    cfg = with_renderer(cfg, args.renderer, args.spp)
     cfg = with_degradation(cfg, fog=args.fog, fog_visibility=args.fog_visibility, lens_occlusion=args.lens_occlusion,
                            beam_drop=args.beam_drop, lidar_fov=args.lidar_fov, drop_sensors=args.drop_sensor,
                            occlusion=args.occlusion)

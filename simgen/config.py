@@ -71,6 +71,9 @@ class CameraConfig:
     ambient: float = field(default=0.45, metadata=_rng(0.0, 2.0))
     sun_intensity: float = field(default=3.0, metadata=_rng(0.0, 20.0))
     zfar: float = field(default=400.0, metadata=_rng(50.0, 5000.0))
+    # pyrender (rasterised, the default) or mitsuba (path-traced rgb, simgen/mitsuba_camera.py).
+    renderer: str = field(default="pyrender", metadata=_rng(choices=("pyrender", "mitsuba")))
+    spp: int = field(default=16, metadata=_rng(1, 4096))
 
 
 @dataclass(frozen=True)
@@ -278,6 +281,18 @@ def with_degradation(cfg: SceneConfig, **flags) -> SceneConfig:
         else:
             values[name] = _check_number(value, hints[name], dict(meta[name].metadata), flag)
     return dataclasses.replace(cfg, degrade=dataclasses.replace(cfg.degrade, **values))
+
+
+def with_renderer(cfg: SceneConfig, renderer: str | None, spp: int | None) -> SceneConfig:
+    """A copy of ``cfg`` with another camera renderer and/or samples per pixel."""
+    cam = cfg.camera
+    if renderer is not None:
+        cam = dataclasses.replace(cam, renderer=renderer)
+    if spp is not None:
+        if not 1 <= spp <= 4096:
+            raise ConfigError(f"--spp: {spp} is out of range [1, 4096]")
+        cam = dataclasses.replace(cam, spp=spp)
+    return dataclasses.replace(cfg, camera=cam)
 
 
 def with_resolution(cfg: SceneConfig, width: int, height: int) -> SceneConfig:

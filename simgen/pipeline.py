@@ -83,7 +83,7 @@ def degrade_image(rgb: np.ndarray, depth: np.ndarray, cam: rig.Camera, cfg: Scen
     d = cfg.degrade
     if cam.channel in d.dropped:
         return np.zeros_like(rgb)
-    if d.alpha > 0:
+    if d.alpha > 0 and cfg.camera.renderer == "pyrender":   # Mitsuba renders fog as a medium
         rgb = D.fog_image(rgb, depth_to_range(depth, cam.K), d.alpha)
     if d.lens_occlusion:
         rgb = D.lens_dirt(rgb, d.lens_occlusion, scene_rng(s.seed, idx, 100 + cam_index))
@@ -109,6 +109,19 @@ def _renderer(cfg: SceneConfig, gl: str | None):
         _RENDERER = Renderer(cfg.camera, gl)
     _RENDERER.cfg = cfg.camera
     return _RENDERER
+
+
+_MITSUBA = None
+
+
+def _mitsuba(cfg: SceneConfig):
+    """The process's one Mitsuba renderer."""
+    global _MITSUBA
+    from .mitsuba_camera import MitsubaRenderer
+    if _MITSUBA is None:
+        _MITSUBA = MitsubaRenderer(cfg.camera, cfg.camera.spp)
+    _MITSUBA.cfg, _MITSUBA.spp = cfg.camera, cfg.camera.spp
+    return _MITSUBA
 
 
 def build_world(s: MakeSettings, idx: int) -> World:
@@ -230,7 +243,12 @@ def _key_frame(s, idx: int, world: World, renderer, cams, calib, rec, add_sample
         T_gc = world.ego_pose(t_cam) @ cam.T_ego_from_cam
         b = world.boxes_at(t_cam)
         poses = geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
-        rgb, depth, ids = renderer.render(cam, T_gc, {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate})
+        pose_of = {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate}
+        rgb, depth, ids = renderer.render(cam, T_gc, pose_of)
+        if cfg.camera.renderer == "mitsuba":
+            # Path-traced rgb; the labels keep the rasterised id pass, so they do not depend on
+            # the renderer (the two agree geometrically: tests/simgen/test_mitsuba.py).
+            rgb, _ = _mitsuba(cfg).render(world, cam, T_gc, pose_of, cfg.degrade.alpha, with_ids=False)
         if cfg.degrade.active:
             rgb = degrade_image(rgb, depth, cam, cfg, s, idx, cam_index)
         fname = f"samples/{cam.channel}/{log_name}__{cam.channel}__{us(t_cam)}.jpg"
