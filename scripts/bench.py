@@ -18,6 +18,13 @@ Keys (clfbev, CPU, one torch thread per process unless said):
   attn_ms_exact_64x64 (+ _peak_mb), attn_ms_scalable_180x180 (+ _peak_mb): one MCM-sized
                                 attention (B=1, 64 channels, 4 heads) in exact mode on 64x64 and in
                                 the scalable modes (window 8, pooled stride 4) on 180x180
+  eval_s_per_100_samples        clfbev predict + official DetectionEval (tiny, 1 thread), per 100
+                                samples (with its two parts)
+Keys (degradation and renderers):
+  fog_overhead_pct              fog on one 1600x900 sample's 6 images and 10 sweeps (timed alone),
+                                as a share of sample_s_1600x900 (measured in the same run)
+  mitsuba_s_per_image_800x450   one path-traced camera image (rgb pass) at mitsuba_spp
+  demo_total_s                  `bash scripts/demo.sh` from scratch (only with --only demo)
 """
 from __future__ import annotations
 
@@ -230,19 +237,131 @@ print(json.dumps({"gflops": fc.get_total_flops() / 1e9}))
 """
 
 
+def bench_eval(quick: bool) -> dict:
+    """clfbev eval: predict + the official DetectionEval, per 100 samples (tiny config, 1 thread)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        n = 6 if quick else 12
+        subprocess.run([sys.executable, "-m", "simgen.cli", "make", "--preset", "tiny", "--scenes", "2",
+                        "--samples-per-scene", str(n // 2), "--val-fraction", "0.5", "--out", f"{tmp}/d", "--quiet",
+                        "--workers", "1"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+        return _py(EVAL_TIMING, f"{tmp}/d", f"{tmp}/e")
+
+
+EVAL_TIMING = """
+import json, sys, time, torch
+torch.set_num_threads(1)
+from clfbev.config import tiny
+from clfbev.data import NuScenesDetection
+from clfbev.evaluate import evaluate, predict_split, write_results
+from clfbev.model import CLFusionBEV
+torch.manual_seed(0)
+cfg = tiny()
+model = CLFusionBEV(cfg, "full").eval()
+ds = NuScenesDetection(sys.argv[1], "v1.0-sim", "sim-val", cfg.data_config())
+t0 = time.perf_counter()
+results = predict_split(model, ds)
+t1 = time.perf_counter()
+evaluate(ds.nusc, write_results(sys.argv[2] + "/r.json", results), "sim-val", sys.argv[2], cfg.class_names)
+t2 = time.perf_counter()
+n = len(ds)
+print(json.dumps({"eval_s_per_100_samples": (t2 - t0) / n * 100, "eval_predict_s_per_100_samples": (t1 - t0) / n * 100,
+                  "eval_devkit_s_per_100_samples": (t2 - t1) / n * 100}))
+"""
+
+
+def bench_fog(quick: bool) -> dict:
+    """Fog's share of a 1600x900 sample: the degradation functions on one sample's data (6 camera
+    images with their depth, 10 sweeps), timed alone, over the same sample made without fog."""
+    from simgen import rig
+    from simgen.config import load_preset, with_degradation
+    from simgen.lidar import LidarScanner
+    from simgen.pipeline import MakeSettings, _renderer, build_world, degrade_image, degrade_sweep
+    cfg = with_degradation(load_preset("urban"), fog=5)
+    s = MakeSettings(cfg, 1, 0, 1, "v1.0-sim")
+    world = build_world(s, 0)
+    r = _renderer(cfg, None)
+    r.set_world(world, key="bench-fog")
+    cams = rig.cameras(cfg.camera.resolution)
+    frames = []
+    for cam in cams:
+        T = world.ego_pose(0.5) @ cam.T_ego_from_cam
+        b = world.boxes_at(0.5)
+        from simgen import geometry as geo
+        poses = geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
+        rgb, depth, _ = r.render(cam, T, {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate})
+        frames.append((cam, rgb, depth))
+    scanner = LidarScanner(cfg.lidar, world)
+    sweeps = [scanner.scan(0.05 * (k + 1), np.random.default_rng(k)) for k in range(10)]
+
+    def fog_one_sample():
+        for i, (cam, rgb, depth) in enumerate(frames):
+            degrade_image(rgb, depth, cam, cfg, s, 0, i)
+        for sw in sweeps:
+            degrade_sweep(sw, cfg, np.zeros(0, int), np.random.default_rng(0))
+
+    ms = median_ms(fog_one_sample, 3 if quick else 7)
+    sample_s = bench_render_sample_s(quick)
+    return {"fog_ms_per_sample_1600x900": ms, "fog_overhead_pct": 100 * ms / 1000 / sample_s}
+
+
+def bench_render_sample_s(quick: bool) -> float:
+    """Seconds per 1600x900 sample (one worker), as sample_s_1600x900."""
+    with tempfile.TemporaryDirectory() as tmp:
+        samples = 2 if quick else 4
+        secs = run_make(Path(tmp) / "d", 1, samples, 1, "1600x900")
+        return secs / samples
+
+
+def bench_mitsuba(quick: bool) -> dict:
+    """One 800x450 camera image path-traced by Mitsuba (rgb pass only) at MITSUBA_SPP."""
+    from simgen import rig
+    from simgen.config import load_preset, with_resolution
+    from simgen.mitsuba_camera import MitsubaRenderer, actor_poses_at
+    from simgen.pipeline import MakeSettings, build_world
+    cfg = with_resolution(load_preset("urban"), 800, 450)
+    world = build_world(MakeSettings(cfg, 1, 0, 1, "v1.0-sim"), 0)
+    cam = rig.cameras(cfg.camera.resolution)[0]
+    T = world.ego_pose(0.5) @ cam.T_ego_from_cam
+    poses = actor_poses_at(world, 0.5)
+    r = MitsubaRenderer(cfg.camera, spp=MITSUBA_SPP)
+    try:
+        ms = median_ms(lambda: r.render(world, cam, T, poses, with_ids=False), 2 if quick else 3)
+    finally:
+        r.close()
+    return {"mitsuba_s_per_image_800x450": ms / 1000, "mitsuba_spp": MITSUBA_SPP, "mitsuba_variant": r.variant}
+
+
+MITSUBA_SPP = 16
+
+
+def bench_demo(quick: bool) -> dict:
+    """`bash scripts/demo.sh` from scratch (its data and run folders removed first)."""
+    import shutil
+    for sub in ("data", "run", "eval"):
+        shutil.rmtree(ROOT / "demo_out" / sub, ignore_errors=True)
+    t0 = time.perf_counter()
+    subprocess.run(["bash", "scripts/demo.sh"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+    timing = json.loads((ROOT / "demo_out" / "timing.json").read_text())
+    return {"demo_total_s": time.perf_counter() - t0, **{f"demo_{k}": v for k, v in timing.items() if k != "scenes"}}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--quick", action="store_true", help="fewer repeats and smaller runs")
-    ap.add_argument("--only", nargs="*", default=None, help="subset: lidar render make memory clfbev")
+    ap.add_argument("--only", nargs="*", default=None,
+                    help="subset: lidar render make memory clfbev eval fog mitsuba, or demo (not in the default "
+                         "set: it runs scripts/demo.sh, about 25 min)")
     args = ap.parse_args()
     repeats = 5 if args.quick else 20
     parts = {"lidar": lambda: bench_lidar(repeats), "render": lambda: bench_render(repeats),
              "make": lambda: bench_make(args.quick), "memory": lambda: bench_worker_memory(args.quick),
-             "clfbev": lambda: bench_clfbev(args.quick)}
+             "clfbev": lambda: bench_clfbev(args.quick), "eval": lambda: bench_eval(args.quick),
+             "fog": lambda: bench_fog(args.quick), "mitsuba": lambda: bench_mitsuba(args.quick),
+             "demo": lambda: bench_demo(args.quick)}
     result = {"machine": {"cpus": os.cpu_count()}}
     for name, fn in parts.items():
-        if args.only is None or name in args.only:
+        if (args.only is None and name != "demo") or (args.only is not None and name in args.only):
             result.update(fn())
     if args.json:
         print(json.dumps(result, indent=1))
