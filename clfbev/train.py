@@ -46,6 +46,7 @@ from clfbev.checkpoint import CheckpointError, check_matches, load_checkpoint, s
 from clfbev.config import VARIANTS, ModelConfig, load_config
 from clfbev.data import Batch, DataError, NuScenesDetection, Sample, collate
 from clfbev.evaluate import evaluate, predict_split, write_results
+from clfbev.gt_paste import GTDatabase, gt_paste
 from clfbev.model import CLFusionBEV
 
 VERSION = "v1.0-sim"
@@ -65,7 +66,9 @@ class TrainConfig:
     batch_size : samples per step and rank. epochs / max_steps : the length (max_steps wins).
     augment : random global + image augmentation. modality_dropout : probability that a training
     sample loses one modality (camera or lidar, even odds): zero images or no points, the input
-    a failed sensor gives at test time. workers : DataLoader processes.
+    a failed sensor gives at test time. gt_paste : objects pasted per sample from a database cut
+    from the training split (lidar only, see clfbev/gt_paste.py; 0 = off). workers : DataLoader
+    processes.
     ckpt_minutes : also write ``last.pt`` this often (besides every epoch). save_every_steps :
     also write it every N steps (0: off). val_split : split validated every epoch ('' : none).
     """
@@ -84,6 +87,7 @@ class TrainConfig:
     max_steps: int = 0
     augment: bool = True
     modality_dropout: float = 0.0
+    gt_paste: int = 0
     workers: int = 0
     ckpt_minutes: float = 10.0
     save_every_steps: int = 0
@@ -109,15 +113,17 @@ class EpochSamples(torch.utils.data.Dataset):
     (rng ``(seed, epoch, i, 1)``)."""
 
     def __init__(self, base: NuScenesDetection, seed: int, epoch: int, augment: AugmentConfig | None,
-                 pc_range: tuple[float, ...], modality_dropout: float = 0.0) -> None:
+                 pc_range: tuple[float, ...], modality_dropout: float = 0.0, gt_db=None, gt_paste: int = 0) -> None:
         self.base, self.seed, self.epoch, self.augment, self.pc_range = base, seed, epoch, augment, pc_range
-        self.modality_dropout = modality_dropout
+        self.modality_dropout, self.gt_db, self.gt_paste = modality_dropout, gt_db, gt_paste
 
     def __len__(self) -> int:
         return len(self.base)
 
     def __getitem__(self, i: int) -> Sample:
         sample = self.base[i]
+        if self.gt_paste and self.gt_db is not None:     # before the global transform, as SECOND does
+            sample = gt_paste(sample, self.gt_db, self.gt_paste, np.random.default_rng((self.seed, self.epoch, i, 2)))
         if self.augment is not None:
             sample = random_augment(sample, np.random.default_rng((self.seed, self.epoch, i)), self.augment)
             sample = crop_to_range(sample, self.pc_range)
@@ -258,6 +264,7 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
     total = tc.max_steps if tc.max_steps > 0 else tc.epochs * steps_per_epoch
     n_epochs = math.ceil(total / steps_per_epoch)
     augment = AugmentConfig() if tc.augment else None
+    gt_db = GTDatabase.build(train_set[i] for i in range(len(train_set))) if tc.gt_paste else None
 
     # ---- model and optimizer
     torch.manual_seed(tc.seed)
@@ -297,7 +304,8 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
         while step < total:
             batches = epoch_batches(len(train_set), tc.batch_size, tc.seed, epoch, rank, world)
             done_in_epoch = step - epoch * steps_per_epoch
-            epoch_set = EpochSamples(train_set, tc.seed, epoch, augment, cfg.pc_range, tc.modality_dropout)
+            epoch_set = EpochSamples(train_set, tc.seed, epoch, augment, cfg.pc_range, tc.modality_dropout,
+                                     gt_db, tc.gt_paste)
             loader = torch.utils.data.DataLoader(epoch_set, batch_sampler=batches[done_in_epoch:],
                                                  collate_fn=collate, num_workers=tc.workers)
             for batch in loader:
@@ -405,6 +413,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-augment", dest="augment", action="store_false", help="no random augmentation")
     p.add_argument("--modality-dropout", type=float, default=0.0, metavar="P",
                    help="drop the camera or the lidar input of a sample with probability P (robust fusion)")
+    p.add_argument("--gt-paste", type=int, default=0, metavar="N",
+                   help="paste up to N objects per sample from other training samples (lidar only; 0 = off)")
     p.add_argument("--workers", type=int, default=d.workers, help="DataLoader worker processes")
     p.add_argument("--ckpt-minutes", type=float, default=d.ckpt_minutes, help="also checkpoint this often")
     p.add_argument("--save-every-steps", type=int, default=0, help="also checkpoint every N steps")
@@ -418,14 +428,15 @@ def train_config_from(args: argparse.Namespace) -> TrainConfig:
     checks = {"--batch-size": args.batch_size >= 1, "--epochs": args.epochs >= 1, "--max-steps": args.max_steps >= 0,
               "--lr": args.lr > 0, "--weight-decay": args.weight_decay >= 0, "--grad-clip": args.grad_clip > 0,
               "--warmup-frac": 0 <= args.warmup_frac < 1, "--workers": args.workers >= 0,
-              "--ckpt-minutes": args.ckpt_minutes > 0, "--modality-dropout": 0 <= args.modality_dropout <= 1, "--save-every-steps": args.save_every_steps >= 0}
+              "--ckpt-minutes": args.ckpt_minutes > 0, "--modality-dropout": 0 <= args.modality_dropout <= 1,
+              "--gt-paste": args.gt_paste >= 0, "--save-every-steps": args.save_every_steps >= 0}
     bad = [k for k, ok in checks.items() if not ok]
     if bad:
         raise ValueError(f"out-of-range value for {', '.join(bad)}")
     return TrainConfig(train_split=args.train_split, val_split=args.val_split, version=args.version, seed=args.seed,
                        lr=args.lr, weight_decay=args.weight_decay, warmup_frac=args.warmup_frac,
                        grad_clip=args.grad_clip, batch_size=args.batch_size, epochs=args.epochs,
-                       max_steps=args.max_steps, augment=args.augment, modality_dropout=args.modality_dropout,
+                       max_steps=args.max_steps, augment=args.augment, modality_dropout=args.modality_dropout, gt_paste=args.gt_paste,
                        workers=args.workers,
                        ckpt_minutes=args.ckpt_minutes, save_every_steps=args.save_every_steps)
 
