@@ -197,11 +197,11 @@ def plot_loss_curve(metrics_jsonl: str | Path, out_png: str | Path) -> Path:
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=110)
     steps = np.array([r["step"] for r in train])
     for key, style in (("train/loss", "-"), ("train/loss_cls", ":"), ("train/loss_reg", "--"), ("train/loss_dir", "-.")):
-        y = np.array([r.get(key, np.nan) for r in train])
-        if len(y) > 20:    # a running mean makes the trend readable; raw values are in the JSONL
-            k = max(1, len(y) // 50)
-            y = np.convolve(y, np.ones(k) / k, mode="same")
-        ax.plot(steps, y, style, label=key.split("/")[1])
+        y, x = np.array([r.get(key, np.nan) for r in train]), steps
+        k = max(1, len(y) // 50)
+        if k > 1:    # a trailing running mean makes the trend readable; raw values are in the JSONL
+            y, x = np.convolve(y, np.ones(k) / k, mode="valid"), steps[k - 1:]
+        ax.plot(x, y, style, label=key.split("/")[1])
     ax.set_yscale("log")
     ax.set_xlabel("step")
     ax.set_ylabel("loss")

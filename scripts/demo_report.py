@@ -38,7 +38,7 @@ def main() -> int:
         "",
         "| stage | seconds |",
         "|---|---:|",
-        *[f"| {k.removesuffix('_s')} | {v:.0f} |" for k, v in timing.items() if k != "total_s"],
+        *[f"| {k.removesuffix('_s')} | {v:.0f} |" for k, v in timing.items() if k.endswith("_s") and k != "total_s"],
         f"| **total** | **{timing['total_s']:.0f}** |",
         "",
         "## Data",
