@@ -62,9 +62,14 @@ def alpha_of_visibility(mor: float) -> float:
 def fog_image(rgb: np.ndarray, range_m: np.ndarray, alpha: float, airlight=AIRLIGHT) -> np.ndarray:
     """Koschmieder fog. rgb (H, W, 3) uint8, range_m (H, W) metres along each pixel's ray, 0 where
     nothing was hit (sky: full airlight). Returns uint8 ``round(J t + A (1 - t))``."""
-    t = np.where(range_m > 0, np.exp(-alpha * range_m), 0.0)[..., None]
-    out = rgb.astype(np.float64) * t + np.asarray(airlight, np.float64) * (1.0 - t)
-    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+    # float32 with OpenCV's vectorised arithmetic: about 5x faster than float64 numpy at 1600x900.
+    t = np.exp(np.float32(-alpha) * range_m.astype(np.float32))
+    t[range_m <= 0] = 0.0
+    A = tuple(float(a) for a in airlight) + (0.0,)
+    x = cv2.subtract(rgb.astype(np.float32), A)
+    x = cv2.multiply(x, cv2.merge([t, t, t]))
+    x = cv2.add(x, A)                          # J t + A (1 - t), as A + (J - A) t; in [0, 255]
+    return cv2.convertScaleAbs(x)              # rounds to the nearest level, saturates
 
 
 def lens_dirt(rgb: np.ndarray, severity: int, rng: np.random.Generator) -> np.ndarray:
@@ -134,7 +139,7 @@ def fog_lidar(points: np.ndarray, rho_cos: np.ndarray, range_m: np.ndarray, dir_
         return points.copy(), np.zeros(len(points), bool)
     r, best, arg = fog_table(alpha)
     p_hard = rho_cos / range_m**2 * np.exp(-2 * alpha * range_m)
-    idx = np.clip(np.searchsorted(r, range_m, side="right") - 1, 0, len(r) - 1)
+    idx = np.minimum((range_m / TABLE_STEP).astype(np.int64), len(r) - 1)     # the grid is uniform from 0
     p_soft, r_fog = best[idx], arg[idx]
     fog_wins = p_soft > p_hard
     power = np.where(fog_wins, p_soft, p_hard)

@@ -23,8 +23,8 @@ def test_camera_fog_is_koschmieder_exactly():
     alpha = D.FOG_ALPHA[4]
     out = D.fog_image(J, d, alpha)
     t = np.where(d > 0, np.exp(-alpha * d), 0.0)[..., None]
-    expected = np.round(J * t + D.AIRLIGHT * (1 - t))
-    np.testing.assert_array_equal(out, expected.astype(np.uint8))
+    expected = J * t + D.AIRLIGHT * (1 - t)                  # float64 reference
+    assert np.abs(out - expected).max() <= 0.5 + 1e-3       # the formula, rounded to the nearest level
     assert (out[:5] == np.round(D.AIRLIGHT).astype(np.uint8)).all()      # the sky is all airlight
     np.testing.assert_array_equal(D.fog_image(J, d, 0.0)[5:], J[5:])     # alpha 0 changes nothing
 
