@@ -250,9 +250,11 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
             raise CheckpointError(f"{last_path} exists: pass --resume to continue that run, or choose another --out")
         ckpt = load_checkpoint(last_path)
         check_matches(ckpt, last_path, cfg, variant)
-        saved = TrainConfig(**ckpt["train"])
-        if replace(saved, ckpt_minutes=tc.ckpt_minutes, workers=tc.workers) != replace(tc, ckpt_minutes=saved.ckpt_minutes, workers=saved.workers):
-            diff = [k for k, v in asdict(tc).items() if asdict(saved)[k] != v and k not in ("ckpt_minutes", "workers")]
+        # Settings that change the result must match; how often to save and how many loader
+        # processes do not.
+        saved = asdict(TrainConfig(**ckpt["train"]))
+        diff = [k for k, v in asdict(tc).items() if saved[k] != v and k not in ("ckpt_minutes", "workers")]
+        if diff:
             raise CheckpointError(f"{last_path} was trained with other settings (differs in: {', '.join(diff)})")
 
     # ---- data
@@ -262,7 +264,6 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
         raise DataError(f"split '{tc.train_split}' of {data} has no samples")
     steps_per_epoch = len(epoch_batches(len(train_set), tc.batch_size, tc.seed, 0, rank, world))
     total = tc.max_steps if tc.max_steps > 0 else tc.epochs * steps_per_epoch
-    n_epochs = math.ceil(total / steps_per_epoch)
     augment = AugmentConfig() if tc.augment else None
     gt_db = GTDatabase.build(train_set[i] for i in range(len(train_set))) if tc.gt_paste else None
 

@@ -1,7 +1,6 @@
 """The Mitsuba cameras agree with the pyrender cameras geometrically, and plug into `make`."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 from conftest import run_simgen
 
