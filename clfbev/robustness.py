@@ -103,7 +103,9 @@ def run(ckpts: list[tuple[str, Path]], conditions: list[Condition], out: Path, s
         record["models"][name] = entry
     summarise(record)
     _atomic_json(out / "robustness.json", record)
-    (out / "robustness.md").write_text(markdown(record))
+    tmp = out / ".robustness.md.tmp"
+    tmp.write_text(markdown(record))
+    tmp.replace(out / "robustness.md")
     plot(record, out / "robustness.png")
     return record
 

@@ -45,7 +45,7 @@ from clfbev.augment import AugmentConfig, crop_to_range, random_augment
 from clfbev.checkpoint import CheckpointError, check_matches, load_checkpoint, save_checkpoint
 from clfbev.config import VARIANTS, ModelConfig, load_config
 from clfbev.data import Batch, DataError, NuScenesDetection, Sample, collate
-from clfbev.evaluate import evaluate, predict_split, write_results
+from clfbev.evaluate import _atomic_json, evaluate, predict_split, write_results
 from clfbev.gt_paste import GTDatabase, gt_paste
 from clfbev.model import CLFusionBEV
 
@@ -177,12 +177,6 @@ def code_version() -> str:
         return "unknown"
 
 
-def _write_json(path: Path, obj) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2))
-    os.replace(tmp, path)
-
-
 class ScalarLog:
     """Scalars to ``RUN/metrics.jsonl`` (one JSON object per line) and TensorBoard ``RUN/tb``.
     On resume from step k, lines of steps > k (written after the checkpoint) are dropped and
@@ -283,10 +277,11 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
     use_amp = device.type == "cuda"
 
     log = None
+    version = code_version()          # a git subprocess: once per run, not at every checkpoint
     if is_main:
         run.mkdir(parents=True, exist_ok=True)
-        _write_json(run / "run.json", {"config": cfg.to_dict(), "variant": variant, "train": asdict(tc),
-                                       "world_size": world, "code_version": code_version(),
+        _atomic_json(run / "run.json", {"config": cfg.to_dict(), "variant": variant, "train": asdict(tc),
+                                        "world_size": world, "code_version": version,
                                        "argv": sys.argv, "resumed_at_step": step})
         log = ScalarLog(run, step)
 
@@ -294,7 +289,7 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
         save_checkpoint(path, {
             "model": model.state_dict(), "optimizer": opt.state_dict(), "config": cfg.to_dict(),
             "variant": variant, "train": asdict(tc), "step": step, "epoch": epoch,
-            "best_nds": best_nds, "torch_rng": torch.get_rng_state(), "code_version": code_version(),
+            "best_nds": best_nds, "torch_rng": torch.get_rng_state(), "code_version": version,
         })
 
     from tqdm import tqdm

@@ -275,6 +275,7 @@ def bench_fog(quick: bool) -> dict:
     from simgen import rig
     from simgen.config import load_preset, with_degradation
     from simgen.lidar import LidarScanner
+    from simgen.mitsuba_camera import actor_poses_at
     from simgen.pipeline import MakeSettings, _renderer, build_world, degrade_image, degrade_sweep
     cfg = with_degradation(load_preset("urban"), fog=5)
     s = MakeSettings(cfg, 1, 0, 1, "v1.0-sim")
@@ -282,13 +283,10 @@ def bench_fog(quick: bool) -> dict:
     r = _renderer(cfg, None)
     r.set_world(world, key="bench-fog")
     cams = rig.cameras(cfg.camera.resolution)
+    poses = actor_poses_at(world, 0.5)
     frames = []
     for cam in cams:
-        T = world.ego_pose(0.5) @ cam.T_ego_from_cam
-        b = world.boxes_at(0.5)
-        from simgen import geometry as geo
-        poses = geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
-        rgb, depth, _ = r.render(cam, T, {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate})
+        rgb, depth, _ = r.render(cam, world.ego_pose(0.5) @ cam.T_ego_from_cam, poses)
         frames.append((cam, rgb, depth))
     scanner = LidarScanner(cfg.lidar, world)
     sweeps = [scanner.scan(0.05 * (k + 1), np.random.default_rng(k)) for k in range(10)]
