@@ -88,6 +88,9 @@ class LidarConfig:
     min_return: float = field(default=5e-6, metadata=_rng(0.0, 1.0))
     # Intensity 255 is reached by rho * cos / R^2 >= 1 / intensity_ref_range^2.
     intensity_ref_range: float = field(default=6.0, metadata=_rng(0.5, 100.0))
+    # In fog the detection threshold rises to min_return * (1 + G * airlight fraction along the
+    # beam): the daylight the fog scatters into the receiver (degrade.py explains the calibration).
+    fog_background_gain: float = field(default=200.0, metadata=_rng(0.0, 1e5))
 
 
 SENSOR_CHANNELS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT",

@@ -65,7 +65,8 @@ def degrade_sweep(sweep, cfg: SceneConfig, rings: np.ndarray, rng: np.random.Gen
     pts = sweep.points_lidar
     if d.alpha > 0:
         pts, _ = D.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, d.alpha,
-                             cfg.lidar.min_return, cfg.lidar.intensity_ref_range, rng)
+                             cfg.lidar.min_return, cfg.lidar.intensity_ref_range, rng,
+                             background_gain=cfg.lidar.fog_background_gain)
     if len(rings):
         pts = D.drop_rings(pts, rings)
     if d.lidar_fov < 360:

@@ -50,7 +50,8 @@ def test_lidar_fog_hard_returns_attenuate_as_exp_minus_2_alpha_r():
     pts, dirs = _synthetic_returns(ranges, rho_cos)
     ref = 2.0                                          # intensity unsaturated: P ref^2 < 1
     alpha = D.FOG_ALPHA[2]
-    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, alpha, 1e-9, ref, np.random.default_rng(0))
+    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, alpha, 1e-9, ref, np.random.default_rng(0),
+                              background_gain=0.0)
     assert not is_fog.any() and len(out) == 36
     np.testing.assert_allclose(out[:, :3], pts[:, :3])                  # not moved
     clean = 255 * rho_cos / ranges**2 * ref**2
@@ -62,14 +63,30 @@ def test_lidar_fog_moves_weak_far_returns_to_the_fog_range_along_the_ray():
     ranges = np.array([60.0, 80.0])
     rho_cos = np.array([0.05, 0.05])
     pts, dirs = _synthetic_returns(ranges, rho_cos)
-    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 5e-6, 6.0, np.random.default_rng(0))
+    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 5e-6, 6.0, np.random.default_rng(0),
+                              background_gain=0.0)
     assert is_fog.all()
     r = np.linalg.norm(out[:, :3], axis=1)
     assert ((r > 1.0) & (r < 5.0)).all()                                # near the sensor
     np.testing.assert_allclose(out[:, :3] / r[:, None], dirs, atol=1e-6)  # on the same ray
     # A return lost to attenuation when the fog response is below the threshold too.
-    out2, _ = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 1.0, 6.0, np.random.default_rng(0))
+    out2, _ = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 1.0, 6.0, np.random.default_rng(0),
+                          background_gain=0.0)
     assert len(out2) == 0
+
+
+def test_lidar_fog_threshold_rises_with_the_airlight_along_the_beam():
+    """A hard return is kept exactly when P_hard >= min_return (1 + G (1 - exp(-alpha R0)))."""
+    alpha, t0, gain = D.FOG_ALPHA[3], 5e-6, 200.0
+    ranges = np.array([10.0, 20.0, 30.0])
+    threshold = t0 * (1 + gain * (1 - np.exp(-alpha * ranges)))
+    for factor, kept in ((1.01, True), (0.99, False)):
+        rho_cos = factor * threshold * ranges**2 * np.exp(2 * alpha * ranges)   # P_hard = factor * T
+        assert (rho_cos / ranges**2 > D.fog_table(alpha)[1][-1]).all()          # the fog cannot win
+        pts, dirs = _synthetic_returns(ranges, rho_cos)
+        out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, alpha, t0, 6.0, np.random.default_rng(0),
+                                  background_gain=gain)
+        assert len(out) == (3 if kept else 0) and not is_fog.any()
 
 
 @pytest.fixture(scope="module")
@@ -82,17 +99,22 @@ def clean_sweep():
 
 def test_lidar_fog_on_a_scene_monotone_in_severity(clean_sweep):
     cfg, sweep = clean_sweep
-    near, far, total = [], [], []
+    far, total, fog_near = [], [], []
     for sev in range(6):
         c = with_degradation(cfg, fog=sev)
         pts = degrade_sweep(sweep, c, np.zeros(0, int), np.random.default_rng(1))
         r = np.linalg.norm(pts[:, :3], axis=1)
-        near.append(int((r < 10).sum()))
         far.append(int((r > 30).sum()))
         total.append(len(pts))
-    assert total == sorted(total, reverse=True)                    # never more points
+        same, is_fog = D.fog_lidar(sweep.points_lidar, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar,
+                                   D.FOG_ALPHA[sev], cfg.lidar.min_return, cfg.lidar.intensity_ref_range,
+                                   np.random.default_rng(1), background_gain=cfg.lidar.fog_background_gain)
+        np.testing.assert_array_equal(same, pts)
+        fog_near.append(int((is_fog & (r < 10)).sum()))
+    assert all(b < a for a, b in zip(total, total[1:])), total     # every severity loses points
     assert far == sorted(far, reverse=True) and far[5] < far[0] // 4   # the far scene fades away
-    assert near[1:] == sorted(near[1:]) and near[5] > near[0]      # fog returns pile up near the sensor
+    assert fog_near == sorted(fog_near) and fog_near[0] == 0        # fog clutter near the sensor ...
+    assert fog_near[5] > 1000 and fog_near[5] > 10 * fog_near[3]    # ... appears in dense fog
 
 
 def test_beam_drop_and_sector(clean_sweep):
