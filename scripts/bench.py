@@ -72,7 +72,7 @@ def bench_lidar(repeats: int) -> dict:
                                     for i, a in enumerate(world.actors) if a.annotate]
     scene_mesh = trimesh.util.concatenate(meshes)
     target = RayTarget(scene_mesh, np.zeros(len(scene_mesh.faces)))
-    origin, dirs = scanner.rays_global(t - 0.05 + scanner.frac * 0.05)
+    _, origin, dirs = scanner.sweep_rays(t)
     target.first_triangles(origin, dirs)
     floor_ms = median_ms(lambda: target.first_triangles(origin, dirs), repeats)
     return {"lidar_ms_per_sweep": sweep_ms, "lidar_embree_floor_ms": floor_ms, "lidar_rays_per_sweep": len(dirs)}

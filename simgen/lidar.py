@@ -92,27 +92,38 @@ class RayTarget:
         self.v0 = vertices[faces[:, 0]]
         self.reflectivity = np.asarray(reflectivity, np.float32)
 
-    def first_triangles(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """(m,) index of the first triangle each ray hits, -1 for a miss."""
+    def first_triangles(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray | None = None) -> np.ndarray:
+        """(m,) index of the first triangle each ray hits, -1 for a miss. ``tfar`` (m,), optional:
+        hits beyond it are misses, which lets Embree stop early."""
         if len(origins) == 0:
             return np.zeros(0, np.int64)
         if self.engine == "embree":
-            return np.asarray(self._scene.run((origins - self.origin).astype(np.float32),
-                                              dirs.astype(np.float32)), dtype=np.int64)
-        return np.asarray(self._scene.intersects_first(origins, dirs), dtype=np.int64)
+            return np.asarray(self._scene.run((origins - self.origin).astype(np.float32), dirs.astype(np.float32),
+                                              dists=None if tfar is None else tfar.astype(np.float32)),
+                              dtype=np.int64)
+        tri = np.asarray(self._scene.intersects_first(origins, dirs), dtype=np.int64)
+        if tfar is not None:
+            d = np.full(len(tri), np.inf)
+            hit = tri >= 0
+            d[hit] = self._plane_distance(origins[hit], dirs[hit], tri[hit])
+            tri[d > tfar] = -1
+        return tri
 
-    def first_hits(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _plane_distance(self, origins: np.ndarray, dirs: np.ndarray, tri: np.ndarray) -> np.ndarray:
+        n = self.normals[tri]
+        return np.einsum("md,md->m", self.v0[tri] - origins, n) / np.einsum("md,md->m", dirs, n)
+
+    def first_hits(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
         """(m, 3) rays with unit directions -> (m,) hit distance (inf for a miss) and triangle (-1).
 
         The distance is the exact (float64) ray-plane distance to the triangle the engine reports.
         """
         dist = np.full(len(origins), np.inf)
-        tri = self.first_triangles(origins, dirs)
+        tri = self.first_triangles(origins, dirs, tfar)
         hit = np.nonzero(tri >= 0)[0]
         if len(hit):
-            n = self.normals[tri[hit]]
-            dist[hit] = (np.einsum("md,md->m", self.v0[tri[hit]] - origins[hit], n)
-                         / np.einsum("md,md->m", dirs[hit], n))
+            dist[hit] = self._plane_distance(origins[hit], dirs[hit], tri[hit])
         return dist, tri
 
 
@@ -181,19 +192,23 @@ class LidarScanner:
         self.mover_ids = np.array([world.actors[i].id for i in self.moving_idx], np.int32)
         self._build_atlas()
 
-    def rays_global(self, t_ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Origins and unit directions (m, 3), global frame, of rays fired at times ``t_ray``.
+    def sweep_rays(self, t_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rays of the sweep ending at ``t_end``: firing times (m,), and origins and unit
+        directions (m, 3) in the global frame.
 
-        The ego pose is planar (ego_pose z is 0, rotation about z only), so each ray's pose is
-        its interpolated (x, y, yaw), applied without building (m, 4, 4) matrices.
+        The ego pose is planar (ego_pose z is 0, rotation about z only). The 32 lasers of a column
+        fire together, so the pose is interpolated once per column and applied without building
+        (m, 4, 4) matrices.
         """
-        x, y, yaw = self.world.ego_xy_yaw(t_ray)
+        t_col = t_end - SWEEP_PERIOD + self.frac[::N_BEAMS] * SWEEP_PERIOD
+        x, y, yaw = self.world.ego_xy_yaw(t_col)
         c, s = np.cos(yaw), np.sin(yaw)
         p = self.T_ego_from_lidar[:3, 3]
-        d = self.dir_ego
-        origin = np.stack([x + c * p[0] - s * p[1], y + s * p[0] + c * p[1], np.full_like(x, p[2])], 1)
+        origin = np.repeat(np.stack([x + c * p[0] - s * p[1], y + s * p[0] + c * p[1], np.full_like(x, p[2])], 1),
+                           N_BEAMS, axis=0)
+        c, s, d = np.repeat(c, N_BEAMS), np.repeat(s, N_BEAMS), self.dir_ego
         dirs = np.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1], d[:, 2]], 1)
-        return origin, dirs
+        return np.repeat(t_col, N_BEAMS), origin, dirs
 
     def _poses(self, idx: np.ndarray, t: float) -> np.ndarray:
         b = self.world.boxes_at(t)[idx]
@@ -225,15 +240,12 @@ class LidarScanner:
         if self.atlas is None:
             return
         boxes = self.world.boxes_at(t_end)[self.moving_idx]
-        far = np.hypot(*(boxes[:, :2] - sensor_xy).T) > self.cfg.max_range + np.hypot(boxes[:, 3], boxes[:, 4])
-        rays, owner = [], []
-        for j in np.nonzero(~far)[0]:
-            r = self._candidate_rays(boxes[j], sensor_xy, ego_yaw)
-            rays.append(r)
-            owner.append(np.full(len(r), j))
-        if not rays:
+        near = np.nonzero(np.hypot(*(boxes[:, :2] - sensor_xy).T)
+                          <= self.cfg.max_range + np.hypot(boxes[:, 3], boxes[:, 4]))[0]
+        rays, owner = self._candidate_rays(boxes[near], sensor_xy, ego_yaw, dist)
+        if len(rays) == 0:
             return
-        rays, owner = np.concatenate(rays), np.concatenate(owner)
+        owner = near[owner]
         b = boxes[owner]
         c, s = np.cos(b[:, 6]), np.sin(b[:, 6])
         rel = origin[rays] - b[:, :3]
@@ -241,7 +253,7 @@ class LidarScanner:
         o_local = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]], 1)
         d = dirs[rays]
         d_local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], 1)
-        d_hit, tri = self.atlas.first_hits(o_local + self.atlas_offset[owner], d_local)
+        d_hit, tri = self.atlas.first_hits(o_local + self.atlas_offset[owner], d_local, tfar=dist[rays])
         ok = (tri >= 0) & (self.atlas_owner[np.maximum(tri, 0)] == owner) & (d_hit < dist[rays])
         # Several actors may be hit by one ray: write the farthest first so the nearest wins.
         sel = np.nonzero(ok)[0]
@@ -253,36 +265,49 @@ class LidarScanner:
         n = self.atlas.normals[t]
         normals[r] = np.stack([c[sel] * n[:, 0] - s[sel] * n[:, 1], s[sel] * n[:, 0] + c[sel] * n[:, 1], n[:, 2]], 1)
 
-    def _candidate_rays(self, box: np.ndarray, sensor_xy: np.ndarray, ego_yaw: float) -> np.ndarray:
-        """Indices of the rays that can pass within reach of ``box`` during the sweep: the
-        columns whose azimuth and the rings whose elevation come near its bounding cylinder."""
-        rel = box[:2] - sensor_xy
-        d = np.hypot(*rel)
-        r = np.hypot(box[3], box[4]) / 2 + 1.0     # + how far the sensor moves in one sweep
-        if d <= r:
-            return np.arange(len(self.frac))
-        half = np.arcsin(r / d) + np.deg2rad(1.0)   # + the mount tilt's effect on azimuth
-        centre = ((np.pi - (np.arctan2(rel[1], rel[0]) - ego_yaw)) / (2 * np.pi)) % 1.0
-        c0 = int(np.floor((centre - half / (2 * np.pi)) * self.n_az))
-        c1 = int(np.ceil((centre + half / (2 * np.pi)) * self.n_az))
-        cols = np.arange(c0, c1 + 1) % self.n_az
+    def _candidate_rays(self, boxes: np.ndarray, sensor_xy: np.ndarray, ego_yaw: float, dist: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+        """The rays that can pass within reach of each of ``boxes`` (k, 7) during the sweep: the
+        columns whose azimuth and the rings whose elevation come near its bounding cylinder, less
+        the rays whose first static hit (``dist``, per ray) comes before the cylinder's near side.
+
+        Returns (ray indices, box index of each), box by box, column by column, ring by ring."""
+        rel = boxes[:, :2] - sensor_xy
+        d = np.hypot(rel[:, 0], rel[:, 1])
+        r = np.hypot(boxes[:, 3], boxes[:, 4]) / 2 + 1.0       # + how far the sensor moves in one sweep
+        inside = d <= r
+        with np.errstate(invalid="ignore", divide="ignore"):
+            half = np.arcsin(np.minimum(r / d, 1.0)) + np.deg2rad(1.0)   # + the mount tilt's effect
+        centre = ((np.pi - (np.arctan2(rel[:, 1], rel[:, 0]) - ego_yaw)) / (2 * np.pi)) % 1.0
+        c0 = np.floor((centre - half / (2 * np.pi)) * self.n_az).astype(np.int64)
+        c1 = np.ceil((centre + half / (2 * np.pi)) * self.n_az).astype(np.int64)
+        c0[inside], c1[inside] = 0, self.n_az - 1
         # Elevations under which the cylinder's bottom and top are seen from the sensor height.
-        dz_lo = box[2] - box[5] / 2 - self.sensor_height
-        dz_hi = box[2] + box[5] / 2 - self.sensor_height
-        d_near, d_far = d - r, d + r
-        el_lo = np.arctan2(dz_lo, d_near if dz_lo < 0 else d_far)
-        el_hi = np.arctan2(dz_hi, d_near if dz_hi > 0 else d_far)
-        margin = np.deg2rad(1.6)                    # the mount tilt, and then some
-        rings = np.nonzero((self.ring_elevation >= el_lo - margin) & (self.ring_elevation <= el_hi + margin))[0]
-        return (cols[:, None] * N_BEAMS + rings).ravel()
+        dz_lo = boxes[:, 2] - boxes[:, 5] / 2 - self.sensor_height
+        dz_hi = boxes[:, 2] + boxes[:, 5] / 2 - self.sensor_height
+        el_lo = np.arctan2(dz_lo, np.where(dz_lo < 0, d - r, d + r))
+        el_hi = np.arctan2(dz_hi, np.where(dz_hi > 0, d - r, d + r))
+        margin = np.deg2rad(1.6)                                # the mount tilt, and then some
+        rings = ((self.ring_elevation >= el_lo[:, None] - margin)
+                 & (self.ring_elevation <= el_hi[:, None] + margin))     # (k, 32)
+        rings[inside] = True
+        # Every (box, column) pair, then its rings.
+        n_cols = c1 - c0 + 1
+        box_of_col = np.repeat(np.arange(len(boxes)), n_cols)
+        col = (np.arange(len(box_of_col)) - np.repeat(np.cumsum(n_cols) - n_cols, n_cols) + c0[box_of_col]) % self.n_az
+        col_ring = rings[box_of_col]                                     # (pairs, 32)
+        pair, ring = np.nonzero(col_ring)
+        rays, owner = col[pair] * N_BEAMS + ring, box_of_col[pair]
+        # A ray travels at least as far along itself as across the ground.
+        reach = dist[rays] >= (d - r)[owner]
+        return rays[reach], owner[reach]
 
     def scan(self, t_end: float, rng: np.random.Generator) -> Sweep:
         """Cast one sweep ending at ``t_end`` (s). ``rng`` draws the range noise."""
         cfg = self.cfg
-        t_ray = t_end - SWEEP_PERIOD + self.frac * SWEEP_PERIOD
-        origin, dirs = self.rays_global(t_ray)
+        t_ray, origin, dirs = self.sweep_rays(t_end)
         dist, tri = self.static.first_hits(origin, dirs)
-        hit = tri >= 0
+        hit = np.nonzero(tri >= 0)[0]
         rho = np.zeros(len(dist), np.float32)
         ids = np.zeros(len(dist), np.int32)
         normals = np.zeros((len(dist), 3))
@@ -290,18 +315,20 @@ class LidarScanner:
         ids[hit] = self.static_ids[tri[hit]]
         normals[hit] = self.static.normals[tri[hit]]
         T_end = self.world.ego_pose(t_end)
-        sensor_xy = (T_end @ self.T_ego_from_lidar)[:2, 3]
+        T_lidar = T_end @ self.T_ego_from_lidar                          # T_global_from_lidar at t_end
         ego_yaw = float(np.arctan2(T_end[1, 0], T_end[0, 0]))
-        self._cast_movers(t_end, origin, dirs, sensor_xy, ego_yaw, dist, rho, ids, normals)
+        self._cast_movers(t_end, origin, dirs, T_lidar[:2, 3], ego_yaw, dist, rho, ids, normals)
         cos_inc = np.abs(np.einsum("md,md->m", normals, dirs))
         meas = dist + cfg.range_noise_sigma * rng.standard_normal(len(dist))
         with np.errstate(invalid="ignore", divide="ignore"):
             power = rho * cos_inc / meas ** 2
-        keep = np.isfinite(dist) & (meas >= cfg.min_range) & (meas <= cfg.max_range) & (power >= cfg.min_return)
-        p_global = origin[keep] + dirs[keep] * meas[keep, None]
-        T_lidar_from_global = geo.invert(T_end @ self.T_ego_from_lidar)
-        p_lidar = geo.apply(T_lidar_from_global, p_global)
+        keep = np.nonzero(np.isfinite(dist) & (meas >= cfg.min_range) & (meas <= cfg.max_range)
+                          & (power >= cfg.min_return))[0]
+        # Into the lidar frame at t_end: p = R (origin - t) + (R dir) meas, R = R_lidar_from_global.
+        R_lidar_from_global = T_lidar[:3, :3].T
+        dir_lidar = (R_lidar_from_global @ dirs[keep].T).T
+        origin_lidar = (R_lidar_from_global @ (origin[keep] - T_lidar[:3, 3]).T).T
+        p_lidar = origin_lidar + dir_lidar * meas[keep, None]
         intensity = np.round(255.0 * np.clip(power[keep] * cfg.intensity_ref_range ** 2, 0.0, 1.0))
         pts = np.concatenate([p_lidar, intensity[:, None], self.ring[keep, None]], 1).astype(np.float32)
-        dir_lidar = dirs[keep] @ T_lidar_from_global[:3, :3].T
         return Sweep(pts, t_ray[keep], ids[keep], rho[keep], cos_inc[keep], meas[keep], dir_lidar)
