@@ -18,7 +18,9 @@ re-creating OffscreenRenderer leaks EGL contexts.
 from __future__ import annotations
 
 import os
+import types
 
+import cv2
 import numpy as np
 
 from . import geometry as geo
@@ -49,6 +51,27 @@ def _single_sample_framebuffers(renderer_module) -> None:
 
     storage._simgen_single_sample = True
     renderer_module.glRenderbufferStorageMultisample = storage
+
+
+def _read_single_sample_framebuffer(renderer, scene, flags):
+    """Stands in for pyrender's ``Renderer._read_main_framebuffer`` (EGL), given single-sample
+    buffers: read the render target directly, without pyrender's blit into a second framebuffer,
+    and linearise depth with whole-array float32 arithmetic instead of boolean-mask indexing.
+
+    Returns rgba (H, W, 4) uint8 and depth (H, W) float32 camera z (m), 0 where nothing was hit,
+    both top row first, as pyrender's reader does.
+    """
+    from OpenGL.GL import (GL_DEPTH_COMPONENT, GL_FLOAT, GL_READ_FRAMEBUFFER, GL_RGBA, GL_UNSIGNED_BYTE,
+                           glBindFramebuffer, glReadPixels)
+    w, h = renderer._main_fb_dims
+    glBindFramebuffer(GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
+    ndc = np.frombuffer(glReadPixels(0, 0, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w)[::-1]
+    rgba = np.frombuffer(glReadPixels(0, 0, w, h, GL_RGBA, GL_UNSIGNED_BYTE), np.uint8).reshape(h, w, 4)[::-1]
+    cam = scene.main_camera_node.camera
+    n, f = cam.znear, cam.zfar
+    depth = (2.0 * n * f) / (f + n - (2.0 * ndc - 1.0) * (f - n))      # float32, as pyrender computes it
+    depth[ndc == 1.0] = 0.0
+    return rgba, depth
 
 
 def select_platform(platform: str | None) -> str:
@@ -90,6 +113,9 @@ class Renderer:
         self.cfg = cfg
         self.width, self.height = cfg.resolution
         self._gl = pyrender.OffscreenRenderer(self.width, self.height)
+        if self._gl._platform.supports_framebuffers():      # EGL; OSMesa reads its own window buffer
+            self._gl._renderer._read_main_framebuffer = types.MethodType(_read_single_sample_framebuffer,
+                                                                         self._gl._renderer)
         self.scene = None
         self._world_key = None
 
@@ -144,7 +170,8 @@ class Renderer:
                 self.radius[a.id] = float(np.linalg.norm(a.size)) / 2
         if n_faces >= 2 ** 24:
             raise ValueError(f"{n_faces} faces do not fit the 24-bit face index of the id pass")
-        self.face_rgb = np.concatenate(colours)
+        rgb = np.concatenate(colours)
+        self.face_rgbx = np.concatenate([rgb, np.zeros((len(rgb), 1), np.uint8)], 1).view(np.uint32)[:, 0]
         self.face_owner = np.concatenate(owners)
         self.cam_node = scene.add(pr.IntrinsicsCamera(1, 1, 0, 0, znear=0.1, zfar=self.cfg.zfar))
         self.scene = scene
@@ -186,7 +213,9 @@ class Renderer:
         coded, depth = self._gl.render(self.scene, flags=pr.RenderFlags.FLAT | pr.RenderFlags.RGBA)
         # RGBA bytes read as one little-endian uint32 per pixel: R | G << 8 | B << 16 | A << 24.
         face = np.ascontiguousarray(coded).view(np.uint32)[..., 0] & 0xFFFFFF
-        return self.face_rgb[face], depth.astype(np.float32), self.face_owner[face]
+        # One 4-byte look-up per pixel (np.take on a flat table), then drop the pad byte.
+        rgbx = np.take(self.face_rgbx, face).view(np.uint8).reshape(*face.shape, 4)
+        return cv2.cvtColor(rgbx, cv2.COLOR_RGBA2RGB), depth.astype(np.float32), np.take(self.face_owner, face)
 
     def _in_view(self, cam: Camera, T_global_from_cam, centres, radius) -> np.ndarray:
         """Whether each bounding sphere may touch the view frustum (conservative)."""
