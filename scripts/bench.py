@@ -23,6 +23,8 @@ Keys (clfbev, CPU, one torch thread per process unless said):
 Keys (degradation and renderers):
   fog_overhead_pct              fog on one 1600x900 sample's 6 images and 10 sweeps (timed alone),
                                 as a share of sample_s_1600x900 (measured in the same run)
+  lidar_fog_points_by_severity, lidar_fog_returns_by_severity
+                                one urban sweep under fog severity 0..5: points kept, fog returns
   mitsuba_s_per_image_800x450   one path-traced camera image (rgb pass) at mitsuba_spp
   demo_total_s                  `bash scripts/demo.sh` from scratch (only with --only demo)
 """
@@ -299,7 +301,17 @@ def bench_fog(quick: bool) -> dict:
 
     ms = median_ms(fog_one_sample, 3 if quick else 7)
     sample_s = bench_render_sample_s(quick)
-    return {"fog_ms_per_sample_1600x900": ms, "fog_overhead_pct": 100 * ms / 1000 / sample_s}
+    # What fog does to one sweep, severity 0..5: points kept, and how many of them are fog returns.
+    from simgen import degrade as D
+    sw, points, fog = sweeps[0], [], []
+    for alpha in D.FOG_ALPHA:
+        pts, is_fog = D.fog_lidar(sw.points_lidar, sw.rho * sw.cos_inc, sw.range, sw.dir_lidar, alpha,
+                                  cfg.lidar.min_return, cfg.lidar.intensity_ref_range, np.random.default_rng(0),
+                                  background_gain=cfg.lidar.fog_background_gain)
+        points.append(len(pts))
+        fog.append(int(is_fog.sum()))
+    return {"fog_ms_per_sample_1600x900": ms, "fog_overhead_pct": 100 * ms / 1000 / sample_s,
+            "lidar_fog_points_by_severity": points, "lidar_fog_returns_by_severity": fog}
 
 
 def bench_render_sample_s(quick: bool) -> float:
