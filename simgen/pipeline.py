@@ -301,10 +301,25 @@ def check_resume(s: MakeSettings, dataroot: Path) -> list[int]:
         except json.JSONDecodeError:
             old = None
         if old is not None and {k: v for k, v in old.items() if k != "n_scenes"} != fp:
-            raise ConfigError(f"{dataroot}: holds a partial dataset made with other settings "
-                              f"(preset, seed, samples or version); use another --out or delete it")
+            old_flat, new_flat = _flatten(old), _flatten(fp)
+            differ = sorted(k for k in old_flat.keys() | new_flat.keys()
+                            if k != "n_scenes" and old_flat.get(k) != new_flat.get(k))
+            raise ConfigError(f"{dataroot}: holds a dataset made with other settings (differing: "
+                              f"{', '.join(differ[:6])}{', ...' if len(differ) > 6 else ''}); "
+                              f"use another --out or delete it")
     W.write_atomic(settings_file, W.dump_json(fp))
     return [i for i in range(s.n_scenes) if not W.part_path(dataroot, i).exists()]
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    """Nested dicts -> {"a.b.c": leaf}."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 def write_degradation_record(s: MakeSettings, dataroot: Path) -> None:

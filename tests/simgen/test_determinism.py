@@ -45,4 +45,4 @@ def test_other_settings_in_the_same_out_are_refused(tiny_dataset, tmp_path):
     shutil.copytree(tiny_dataset, copy)
     proc = run_simgen("make", "--out", copy, "--preset", "tiny", "--scenes", "2", "--samples-per-scene", "3",
                       "--seed", "8", "--quiet", check=False)
-    assert proc.returncode == 2 and "other settings" in proc.stderr
+    assert proc.returncode == 2 and "other settings (differing: seed)" in proc.stderr
