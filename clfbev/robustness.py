@@ -3,7 +3,8 @@ with the robustness benchmarks' summary metrics and a report.
 
 Conditions are (1) the first ``--set``, the clean reference; (2) every further ``--set``, a paired
 degraded dataroot (same annotation tables, only the sensor data differ: simgen's fog, lens dirt,
-...); (3) every ``--corrupt`` load-time corruption applied to the clean set
+...; with occluders in the world, also what the sensors see of each object, see
+:func:`check_paired`); (3) every ``--corrupt`` load-time corruption applied to the clean set
 (:mod:`clfbev.corruptions`).
 
 Metrics per checkpoint m and condition c:
@@ -27,6 +28,9 @@ from clfbev.data import DataError, NuScenesDetection
 from clfbev.evaluate import _atomic_json, evaluate, predict_split, write_results
 
 PAIRED_TABLES = ("sample_annotation", "instance", "sample", "ego_pose")
+# What occluders placed in the world may change in a paired set's labels (simgen --occlusion):
+# how much of each object the sensors see, never the object itself.
+SEEN_FIELDS = ("visibility_token", "num_lidar_pts", "num_radar_pts")
 BASELINE_VARIANT = "concat"
 
 
@@ -39,15 +43,42 @@ class Condition:
 
 
 def check_paired(clean: Path, other: Path, version: str, name: str) -> None:
-    """Refuse a set whose annotation tables differ from the clean set's: it is not paired."""
+    """Refuse a set whose annotation tables differ from the clean set's: it is not paired.
+
+    The tables must be byte-identical, except that ``sample_annotation`` records may differ in
+    ``SEEN_FIELDS`` (a set with occluders in the world). Such a set is evaluated on its own labels:
+    the devkit then leaves out, as it always does, the objects that no lidar point reaches.
+    """
     for table in PAIRED_TABLES:
         a, b = clean / version / f"{table}.json", other / version / f"{table}.json"
         for p in (a, b):
             if not p.is_file():
                 raise DataError(f"set {name}: {p} does not exist")
-        if a.read_bytes() != b.read_bytes():
-            raise DataError(f"set {name} ({other}) is not paired with the clean set ({clean}): {table}.json differs; "
-                            "make both with the same simgen preset world, --seed and --scenes")
+        if a.read_bytes() == b.read_bytes():
+            continue
+        why = f"{table}.json differs"
+        if table == "sample_annotation":
+            diff = _differing_field(a, b)
+            if diff is None:
+                continue
+            why = f"{table}.json differs ({diff})"
+        raise DataError(f"set {name} ({other}) is not paired with the clean set ({clean}): {why}; "
+                        "make both with the same simgen preset world, --seed and --scenes")
+
+
+def _differing_field(a: Path, b: Path) -> str | None:
+    """The first difference between two sample_annotation tables outside ``SEEN_FIELDS``, or None."""
+    try:
+        ra, rb = json.loads(a.read_text()), json.loads(b.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DataError(f"{b}: not valid JSON ({e})") from None
+    if len(ra) != len(rb):
+        return f"{len(ra)} against {len(rb)} records"
+    for x, y in zip(ra, rb):
+        for key in sorted(x.keys() | y.keys()):
+            if key not in SEEN_FIELDS and x.get(key) != y.get(key):
+                return f"record {x.get('token')}: {key}"
+    return None
 
 
 def fog_severity_of(root: Path, version: str) -> int | None:

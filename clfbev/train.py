@@ -445,7 +445,9 @@ def run_from_args(args: argparse.Namespace) -> dict:
                     progress=not args.quiet)
     if int(os.environ.get("RANK", "0")) == 0:
         best = f", best val NDS {summary['best_nds']:.4f}" if summary["best_nds"] >= 0 else ""
-        print(f"trained {summary['steps']} steps, final loss {summary['loss']:.4f}{best}; checkpoints in {args.out}")
+        # A resumed run that was already finished trains no step, so it has no loss of its own.
+        loss = f", final loss {summary['loss']:.4f}" if math.isfinite(summary["loss"]) else " (nothing left to train)"
+        print(f"trained {summary['steps']} steps{loss}{best}; checkpoints in {args.out}")
     return summary
 
 

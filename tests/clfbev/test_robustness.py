@@ -135,3 +135,31 @@ def test_robustness_report_on_paired_sets(tiny_dataset, tmp_path):
     cmd[cmd.index(f"fog3={fog}")] = f"other={other}"
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode == 2 and "not paired" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_pairing_allows_only_what_occluders_change(tmp_path):
+    """Occluded sets may differ in visibility and point counts; any other label change is refused."""
+    from clfbev.data import DataError
+    from clfbev.robustness import check_paired
+    anns = [{"token": f"a{i}", "instance_token": f"i{i}", "translation": [float(i), 0.0, 1.0], "size": [2.0, 4.0, 1.5],
+             "rotation": [1.0, 0.0, 0.0, 0.0], "visibility_token": "4", "num_lidar_pts": 10 + i, "num_radar_pts": 0}
+            for i in range(3)]
+
+    def make(name, records):
+        root = tmp_path / name
+        (root / "v").mkdir(parents=True)
+        for table in ("instance", "sample", "ego_pose"):
+            (root / "v" / f"{table}.json").write_text("[]")
+        (root / "v" / "sample_annotation.json").write_text(json.dumps(records, indent=0))
+        return root
+
+    clean = make("clean", anns)
+    occluded = [dict(a) for a in anns]
+    occluded[1].update(visibility_token="1", num_lidar_pts=0)
+    check_paired(clean, make("occ", occluded), "v", "occ")          # accepted
+    moved = [dict(a) for a in anns]
+    moved[2]["translation"] = [2.0, 0.5, 1.0]
+    with pytest.raises(DataError, match=r"not paired.*record a2: translation"):
+        check_paired(clean, make("moved", moved), "v", "moved")
+    with pytest.raises(DataError, match="3 against 2 records"):
+        check_paired(clean, make("fewer", anns[:2]), "v", "fewer")
