@@ -2,7 +2,7 @@
 # The robustness suite in one command: paired degraded sets, the five variants, load-time
 # corruptions, and the report (robustness_out/robustness.{json,md,png}).
 #   bash scripts/robustness.sh            # 12 scenes x 20 samples, 8 epochs per variant (hours on 2 cores)
-#   bash scripts/robustness.sh --quick    # 6 scenes x 10 samples, 3 epochs, 3 load-time corruptions (about 26 min on 2 cores)
+#   bash scripts/robustness.sh --quick    # 6 scenes x 10 samples, 3 epochs, 3 load-time corruptions (about 28 min on 2 cores, docs/robustness.md)
 # Every stage resumes or reuses: a set that exists is not regenerated, a variant whose
 # OUT/runs/VARIANT/best.pt exists is not retrained (point RUNS at other runs to reuse them).
 set -euo pipefail
