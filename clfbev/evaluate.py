@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from clfbev import atomic
 from clfbev.data import Batch, NuScenesDetection, box_lidar_to_global, collate, split_scene_names
 
 MAX_PER_SAMPLE = 500          # the devkit's max_boxes_per_sample: it rejects a file with more
@@ -88,19 +88,8 @@ def write_results(path, results: dict, meta: dict | None = None) -> Path:
     so a crash never leaves a half-written file that a later evaluation would read."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_json(path, {"meta": {**DEFAULT_META, **(meta or {})}, "results": results})
+    atomic.write_json(path, {"meta": {**DEFAULT_META, **(meta or {})}, "results": results})
     return path
-
-
-def _atomic_json(path: Path, obj) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(obj, f, indent=None)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
 
 
 def _split_sample_tokens(nusc, split: str) -> list[str]:
@@ -172,7 +161,7 @@ def evaluate(nusc, results_path, split: str, out_dir, class_names, plots: bool =
             "rotation": [1.0, 0.0, 0.0, 0.0], "velocity": [0.0, 0.0], "detection_name": cfg.class_names[0],
             "detection_score": 0.0, "attribute_name": attribute_for(cfg.class_names[0], 0.0)}]
     filtered = out_dir / "results_eval.json"
-    _atomic_json(filtered, sub)
+    atomic.write_json(filtered, sub)
 
     ev = DetectionEval(nusc, cfg, str(filtered), eval_set=split, output_dir=str(out_dir), verbose=False)
     metrics, details = ev.evaluate()
@@ -181,8 +170,8 @@ def evaluate(nusc, results_path, split: str, out_dir, class_names, plots: bool =
     # What DetectionEval.main writes, without its prints and plots.
     summary = metrics.serialize()
     summary["meta"] = ev.meta.copy()
-    _atomic_json(out_dir / "metrics_summary.json", summary)
-    _atomic_json(out_dir / "metrics_details.json", details.serialize())
+    atomic.write_json(out_dir / "metrics_summary.json", summary)
+    atomic.write_json(out_dir / "metrics_details.json", details.serialize())
     return summary
 
 

@@ -25,7 +25,8 @@ import numpy as np
 from clfbev.checkpoint import load_model
 from clfbev.corruptions import Corruption
 from clfbev.data import DataError, NuScenesDetection
-from clfbev.evaluate import _atomic_json, evaluate, predict_split, write_results
+from clfbev import atomic
+from clfbev.evaluate import evaluate, predict_split, write_results
 
 PAIRED_TABLES = ("sample_annotation", "instance", "sample", "ego_pose")
 # What occluders placed in the world may change in a paired set's labels (simgen --occlusion):
@@ -133,10 +134,8 @@ def run(ckpts: list[tuple[str, Path]], conditions: list[Condition], out: Path, s
             progress(f"{name:12s} {cond.name:24s} mAP {summary['mean_ap']:.4f}  NDS {summary['nd_score']:.4f}")
         record["models"][name] = entry
     summarise(record)
-    _atomic_json(out / "robustness.json", record)
-    tmp = out / ".robustness.md.tmp"
-    tmp.write_text(markdown(record))
-    tmp.replace(out / "robustness.md")
+    atomic.write_json(out / "robustness.json", record)
+    atomic.write_text(out / "robustness.md", markdown(record))
     plot(record, out / "robustness.png")
     return record
 

@@ -41,11 +41,12 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
+from clfbev import atomic
 from clfbev.augment import AugmentConfig, crop_to_range, random_augment
 from clfbev.checkpoint import CheckpointError, check_matches, load_checkpoint, save_checkpoint
 from clfbev.config import VARIANTS, ModelConfig, load_config
 from clfbev.data import Batch, DataError, NuScenesDetection, Sample, collate
-from clfbev.evaluate import _atomic_json, evaluate, predict_split, write_results
+from clfbev.evaluate import evaluate, predict_split, write_results
 from clfbev.gt_paste import GTDatabase, gt_paste
 from clfbev.model import CLFusionBEV
 
@@ -188,9 +189,7 @@ class ScalarLog:
         if self.path.exists():
             keep = [ln for ln in self.path.read_text().splitlines()
                     if ln.strip() and _complete_json(ln) and json.loads(ln)["step"] <= resume_step]
-            tmp = self.path.with_name(".metrics.jsonl.tmp")
-            tmp.write_text("".join(ln + "\n" for ln in keep))
-            os.replace(tmp, self.path)
+            atomic.write_text(self.path, "".join(ln + "\n" for ln in keep))
         self.file = self.path.open("a")
         self.tb = SummaryWriter(str(run / "tb"), purge_step=resume_step + 1 if resume_step else None)
 
@@ -280,7 +279,7 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
     version = code_version()          # a git subprocess: once per run, not at every checkpoint
     if is_main:
         run.mkdir(parents=True, exist_ok=True)
-        _atomic_json(run / "run.json", {"config": cfg.to_dict(), "variant": variant, "train": asdict(tc),
+        atomic.write_json(run / "run.json", {"config": cfg.to_dict(), "variant": variant, "train": asdict(tc),
                                         "world_size": world, "code_version": version,
                                        "argv": sys.argv, "resumed_at_step": step})
         log = ScalarLog(run, step)

@@ -93,37 +93,34 @@ class RayTarget:
         self.reflectivity = np.asarray(reflectivity, np.float32)
 
     def first_triangles(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray | None = None) -> np.ndarray:
-        """(m,) index of the first triangle each ray hits, -1 for a miss. ``tfar`` (m,), optional:
-        hits beyond it are misses, which lets Embree stop early."""
+        """(m,) index of the first triangle each ray hits, -1 for a miss. ``tfar`` (m,), optional,
+        only lets Embree stop early: a hit beyond it may or may not be reported (``first_hits``
+        applies it exactly)."""
         if len(origins) == 0:
             return np.zeros(0, np.int64)
         if self.engine == "embree":
             return np.asarray(self._scene.run((origins - self.origin).astype(np.float32), dirs.astype(np.float32),
                                               dists=None if tfar is None else tfar.astype(np.float32)),
                               dtype=np.int64)
-        tri = np.asarray(self._scene.intersects_first(origins, dirs), dtype=np.int64)
-        if tfar is not None:
-            d = np.full(len(tri), np.inf)
-            hit = tri >= 0
-            d[hit] = self._plane_distance(origins[hit], dirs[hit], tri[hit])
-            tri[d > tfar] = -1
-        return tri
-
-    def _plane_distance(self, origins: np.ndarray, dirs: np.ndarray, tri: np.ndarray) -> np.ndarray:
-        n = self.normals[tri]
-        return np.einsum("md,md->m", self.v0[tri] - origins, n) / np.einsum("md,md->m", dirs, n)
+        return np.asarray(self._scene.intersects_first(origins, dirs), dtype=np.int64)
 
     def first_hits(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
         """(m, 3) rays with unit directions -> (m,) hit distance (inf for a miss) and triangle (-1).
 
         The distance is the exact (float64) ray-plane distance to the triangle the engine reports.
+        With ``tfar`` (m,), a hit farther than it counts as a miss.
         """
         dist = np.full(len(origins), np.inf)
         tri = self.first_triangles(origins, dirs, tfar)
         hit = np.nonzero(tri >= 0)[0]
         if len(hit):
-            dist[hit] = self._plane_distance(origins[hit], dirs[hit], tri[hit])
+            n = self.normals[tri[hit]]
+            dist[hit] = (np.einsum("md,md->m", self.v0[tri[hit]] - origins[hit], n)
+                         / np.einsum("md,md->m", dirs[hit], n))
+        if tfar is not None:
+            beyond = dist > tfar
+            dist[beyond], tri[beyond] = np.inf, -1
         return dist, tri
 
 
