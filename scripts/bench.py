@@ -2,7 +2,9 @@
 """The project's benchmarks. Prints one JSON object (``--json``) or a table.
 
 Medians over repeats, because machines are shared and noisy. Keys (simgen):
-  lidar_ms_per_sweep            one HDL-32E sweep of an urban world, all of LidarScanner.scan
+  lidar_ms_per_sweep            one HDL-32E sweep of an urban world, all of LidarScanner.scan, with
+                                Embree split over all cores (as a single `make` worker runs it)
+  lidar_ms_per_sweep_1_thread   the same on one thread (as each of `cores` workers runs it)
   lidar_embree_floor_ms         bare Embree intersects_first on the same scene (one posed mesh) and rays
   render_ms_per_image_1600x900  one camera: rgb + depth + id pass
   sample_s_1600x900             one worker, a whole sample (6 cameras, 10 sweeps, labels, writing)
@@ -63,11 +65,19 @@ def bench_lidar(repeats: int) -> dict:
     from simgen.pipeline import MakeSettings, build_world
     cfg = load_preset("urban")
     world = build_world(MakeSettings(cfg, 1, 0, 10, "v1.0-sim"), 0)
-    scanner = LidarScanner(cfg.lidar, world)
+    threads = len(os.sched_getaffinity(0))
+    scanner = LidarScanner(cfg.lidar, world, threads=threads)
+    single = LidarScanner(cfg.lidar, world, threads=1)
     rng = np.random.default_rng(0)
-    scanner.scan(0.5, rng)  # builds the per-actor BVHs once, as every scene does
     t = 1.0
-    sweep_ms = median_ms(lambda: scanner.scan(t, rng), repeats)
+    scanner.scan(t, rng)
+    single.scan(t, rng)
+    # Alternating, so that both see the same machine load.
+    a, b = [], []
+    for _ in range(repeats):
+        a.append(median_ms(lambda: scanner.scan(t, rng), 1))
+        b.append(median_ms(lambda: single.scan(t, rng), 1))
+    sweep_ms, sweep_1_ms = float(np.median(a)), float(np.median(b))
     # The floor: the whole scene at t as one mesh, the same rays, bare intersects_first.
     boxes = world.boxes_at(t)
     meshes = [world.static_mesh] + [a.mesh.copy().apply_transform(geo.pose_2d(*boxes[i, :2], boxes[i, 6], boxes[i, 2]))
@@ -77,7 +87,8 @@ def bench_lidar(repeats: int) -> dict:
     _, origin, dirs = scanner.sweep_rays(t)
     target.first_triangles(origin, dirs)
     floor_ms = median_ms(lambda: target.first_triangles(origin, dirs), repeats)
-    return {"lidar_ms_per_sweep": sweep_ms, "lidar_embree_floor_ms": floor_ms, "lidar_rays_per_sweep": len(dirs)}
+    return {"lidar_ms_per_sweep": sweep_ms, "lidar_ms_per_sweep_1_thread": sweep_1_ms, "lidar_threads": threads,
+            "lidar_embree_floor_ms": floor_ms, "lidar_rays_per_sweep": len(dirs)}
 
 
 def bench_render(repeats: int) -> dict:

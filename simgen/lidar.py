@@ -11,6 +11,8 @@ value is scaled so that 255 is reached at ``intensity_ref_range`` for rho cos = 
 """
 from __future__ import annotations
 
+import functools
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +27,9 @@ N_BEAMS = 32
 ELEVATIONS_DEG = np.linspace(-30.67, 10.67, N_BEAMS)   # 1.33 deg apart; ring 0 is the lowest
 SWEEP_PERIOD = 0.05
 ATLAS_SPACING = 500.0   # metres between actor copies in the atlas: far beyond any candidate ray's reach
+
+# A batch is split over threads only when each gets at least this many rays.
+MIN_RAYS_PER_THREAD = 4096
 
 try:
     import embreex  # noqa: F401
@@ -63,6 +68,12 @@ def ray_pattern(cfg: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.repeat(frac, N_BEAMS), ring, d
 
 
+@functools.lru_cache(maxsize=None)
+def _thread_pool(k: int) -> ThreadPoolExecutor:
+    """One pool of ``k`` threads per process, made on first use."""
+    return ThreadPoolExecutor(k, thread_name_prefix="embree")
+
+
 class RayTarget:
     """A mesh ready for first-hit queries: the ray engine plus plain per-face arrays.
 
@@ -71,13 +82,16 @@ class RayTarget:
     sweep, trimesh's per-call work (re-normalising directions, re-validating caches) costs more
     than the ray casting. Coordinates are taken relative to the mesh's lower corner so that
     float32 keeps millimetre precision anywhere in the world.
+
+    ``threads``: embreex releases the GIL while it casts, so a large batch is split over this many
+    threads (the rays are independent: the result does not depend on the split).
     """
 
-    def __init__(self, mesh: trimesh.Trimesh, reflectivity: np.ndarray, engine: str = "auto"):
+    def __init__(self, mesh: trimesh.Trimesh, reflectivity: np.ndarray, engine: str = "auto", threads: int = 1):
         vertices, faces = np.array(mesh.vertices, np.float64), np.array(mesh.faces, np.int64)
         if engine == "auto":
             engine = "embree" if _HAS_EMBREE else "triangle"
-        self.engine = engine
+        self.engine, self.threads = engine, max(1, int(threads))
         self.origin = vertices.min(axis=0) if len(vertices) else np.zeros(3)
         if engine == "embree":
             from embreex import rtcore_scene
@@ -88,8 +102,8 @@ class RayTarget:
         else:
             from trimesh.ray.ray_triangle import RayMeshIntersector
             self._scene = RayMeshIntersector(mesh)
-        self.normals = np.array(mesh.face_normals)
-        self.v0 = vertices[faces[:, 0]]
+        self.normals = np.array(mesh.face_normals)                                # (f, 3)
+        self.plane = np.einsum("fd,fd->f", self.normals, vertices[faces[:, 0]])   # (f,) n . v0
         self.reflectivity = np.asarray(reflectivity, np.float32)
 
     def first_triangles(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray | None = None) -> np.ndarray:
@@ -98,30 +112,42 @@ class RayTarget:
         applies it exactly)."""
         if len(origins) == 0:
             return np.zeros(0, np.int64)
-        if self.engine == "embree":
-            return np.asarray(self._scene.run((origins - self.origin).astype(np.float32), dirs.astype(np.float32),
-                                              dists=None if tfar is None else tfar.astype(np.float32)),
-                              dtype=np.int64)
-        return np.asarray(self._scene.intersects_first(origins, dirs), dtype=np.int64)
+        if self.engine != "embree":
+            return np.asarray(self._scene.intersects_first(origins, dirs), dtype=np.int64)
+        o = (origins - self.origin).astype(np.float32)
+        d = dirs.astype(np.float32)
+        t = None if tfar is None else tfar.astype(np.float32)
+        k = self.threads if len(o) >= MIN_RAYS_PER_THREAD * self.threads else 1
+        if k == 1:
+            return np.asarray(self._scene.run(o, d, dists=t), dtype=np.int64)
+        cut = np.linspace(0, len(o), k + 1).astype(np.int64)
+        parts = _thread_pool(k).map(
+            lambda a, b: self._scene.run(o[a:b], d[a:b], dists=None if t is None else t[a:b]), cut[:-1], cut[1:])
+        return np.concatenate([np.asarray(p, dtype=np.int64) for p in parts])
 
     def first_hits(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
-        """(m, 3) rays with unit directions -> (m,) hit distance (inf for a miss) and triangle (-1).
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(m, 3) rays with unit directions -> (m,) hit distance (inf for a miss), triangle (-1)
+        and |cos| of the incidence angle (the ray against the face normal).
 
         The distance is the exact (float64) ray-plane distance to the triangle the engine reports.
-        With ``tfar`` (m,), a hit farther than it counts as a miss.
+        With ``tfar`` (m,), a hit farther than it counts as a miss. The per-face arrays are read
+        for every ray (a miss reads face 0) and the misses masked afterwards: cheaper than
+        compacting the rays first, since most rays hit.
         """
-        dist = np.full(len(origins), np.inf)
         tri = self.first_triangles(origins, dirs, tfar)
-        hit = np.nonzero(tri >= 0)[0]
-        if len(hit):
-            n = self.normals[tri[hit]]
-            dist[hit] = (np.einsum("md,md->m", self.v0[tri[hit]] - origins[hit], n)
-                         / np.einsum("md,md->m", dirs[hit], n))
+        if len(tri) == 0:
+            return np.zeros(0), tri, np.zeros(0)
+        face = np.maximum(tri, 0)
+        n = np.take(self.normals, face, axis=0)
+        cos = np.einsum("md,md->m", dirs, n)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dist = (np.take(self.plane, face) - np.einsum("md,md->m", origins, n)) / cos
+        miss = tri < 0
         if tfar is not None:
-            beyond = dist > tfar
-            dist[beyond], tri[beyond] = np.inf, -1
-        return dist, tri
+            miss |= dist > tfar
+        dist[miss], tri[miss], cos[miss] = np.inf, -1, 0.0
+        return dist, tri, np.abs(cos)
 
 
 class ActorMeshes:
@@ -160,7 +186,7 @@ class LidarScanner:
     actors for every sweep would cost several times more than the casting itself.
     """
 
-    def __init__(self, cfg: LidarConfig, world: World):
+    def __init__(self, cfg: LidarConfig, world: World, threads: int = 1):
         self.cfg, self.world = cfg, world
         self.frac, self.ring, d = ray_pattern(cfg)
         self.n_az = len(self.frac) // N_BEAMS
@@ -170,6 +196,8 @@ class LidarScanner:
         R = self.T_ego_from_lidar[:3, :3]
         Rz = geo.pose_2d(0.0, 0.0, np.arctan2(R[1, 0], R[0, 0]))[:3, :3]
         self.dir_ego = d @ (R @ Rz.T).T
+        # The same, column by column, each component contiguous: (n_az, 32) x, y, z.
+        self._dir_ego_xyz = [np.ascontiguousarray(self.dir_ego[:, i].reshape(self.n_az, N_BEAMS)) for i in range(3)]
         moving = world.speed.max(axis=1) > 0
         annotated = np.array([a.annotate for a in world.actors])
         self.static_idx = np.nonzero(~moving & annotated)[0]
@@ -182,36 +210,45 @@ class LidarScanner:
             verts.append(posed.vertices)
             faces.append(posed.faces + len(sm.vertices))
         self.static = RayTarget(trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False),
-                                np.concatenate([sm.metadata["reflectivity"], statics.refl]))
+                                np.concatenate([sm.metadata["reflectivity"], statics.refl]), threads=threads)
         self.static_ids = np.concatenate([np.zeros(len(sm.faces), np.int32), statics.ids[statics.face_owner]])
         self.sensor_height = float(self.T_ego_from_lidar[2, 3])
         self.ring_elevation = np.deg2rad(ELEVATIONS_DEG)
         self.mover_ids = np.array([world.actors[i].id for i in self.moving_idx], np.int32)
-        self._build_atlas()
+        self._build_atlas(threads)
 
-    def sweep_rays(self, t_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The rays of the sweep ending at ``t_end``: firing times (m,), and origins and unit
-        directions (m, 3) in the global frame.
-
-        The ego pose is planar (ego_pose z is 0, rotation about z only). The 32 lasers of a column
-        fire together, so the pose is interpolated once per column and applied without building
-        (m, 4, 4) matrices.
-        """
+    def _column_poses(self, t_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per column of 32 lasers (they fire together): firing time (n_az,), sensor origin
+        (n_az, 3) and ego yaw (n_az,) in the global frame. The ego pose is planar (ego_pose z is
+        0, rotation about z only)."""
         t_col = t_end - SWEEP_PERIOD + self.frac[::N_BEAMS] * SWEEP_PERIOD
         x, y, yaw = self.world.ego_xy_yaw(t_col)
         c, s = np.cos(yaw), np.sin(yaw)
         p = self.T_ego_from_lidar[:3, 3]
-        origin = np.repeat(np.stack([x + c * p[0] - s * p[1], y + s * p[0] + c * p[1], np.full_like(x, p[2])], 1),
-                           N_BEAMS, axis=0)
-        c, s, d = np.repeat(c, N_BEAMS), np.repeat(s, N_BEAMS), self.dir_ego
-        dirs = np.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1], d[:, 2]], 1)
-        return np.repeat(t_col, N_BEAMS), origin, dirs
+        origin = np.stack([x + c * p[0] - s * p[1], y + s * p[0] + c * p[1], np.full_like(x, p[2])], 1)
+        return t_col, origin, yaw
+
+    def _rotate_pattern(self, yaw: np.ndarray) -> np.ndarray:
+        """The pattern's ego-frame directions turned by a yaw per column (n_az,) -> (m, 3)."""
+        c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+        dx, dy, dz = self._dir_ego_xyz
+        out = np.empty((self.n_az, N_BEAMS, 3))
+        out[..., 0] = c * dx - s * dy
+        out[..., 1] = s * dx + c * dy
+        out[..., 2] = dz
+        return out.reshape(-1, 3)
+
+    def sweep_rays(self, t_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rays of the sweep ending at ``t_end``: firing times (m,), and origins and unit
+        directions (m, 3) in the global frame."""
+        t_col, origin, yaw = self._column_poses(t_end)
+        return np.repeat(t_col, N_BEAMS), np.repeat(origin, N_BEAMS, axis=0), self._rotate_pattern(yaw)
 
     def _poses(self, idx: np.ndarray, t: float) -> np.ndarray:
         b = self.world.boxes_at(t)[idx]
         return geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
 
-    def _build_atlas(self) -> None:
+    def _build_atlas(self, threads: int) -> None:
         """One BVH of every moving actor's mesh in its box frame, each at its own offset."""
         k = len(self.moving_idx)
         side = max(1, int(np.ceil(k ** (1 / 3))))
@@ -229,10 +266,10 @@ class LidarScanner:
             self.atlas = None
             return
         self.atlas = RayTarget(trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False),
-                               np.concatenate(refl))
+                               np.concatenate(refl), threads=threads)
         self.atlas_owner = np.concatenate(owner)
 
-    def _cast_movers(self, t_end, origin, dirs, sensor_xy, ego_yaw, dist, rho, ids, normals) -> None:
+    def _cast_movers(self, t_end, origin, dirs, sensor_xy, ego_yaw, dist, rho, ids, cos_inc) -> None:
         """Cast the rays near each moving actor against the atlas; update the hits in place."""
         if self.atlas is None:
             return
@@ -243,24 +280,27 @@ class LidarScanner:
         if len(rays) == 0:
             return
         owner = near[owner]
-        b = boxes[owner]
-        c, s = np.cos(b[:, 6]), np.sin(b[:, 6])
-        rel = origin[rays] - b[:, :3]
         # Into each actor's box frame (rotation about z by -yaw), then to its atlas copy.
-        o_local = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]], 1)
-        d = dirs[rays]
-        d_local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], 1)
-        d_hit, tri = self.atlas.first_hits(o_local + self.atlas_offset[owner], d_local, tfar=dist[rays])
+        c, s = np.cos(boxes[:, 6])[owner], np.sin(boxes[:, 6])[owner]
+        o = np.take(origin, rays, axis=0) - np.take(boxes[:, :3], owner, axis=0)
+        d = np.take(dirs, rays, axis=0)
+        o_local, d_local = np.empty_like(o), np.empty_like(d)
+        for src, dst in ((o, o_local), (d, d_local)):
+            dst[:, 0] = c * src[:, 0] + s * src[:, 1]
+            dst[:, 1] = c * src[:, 1] - s * src[:, 0]
+            dst[:, 2] = src[:, 2]
+        o_local += np.take(self.atlas_offset, owner, axis=0)
+        d_hit, tri, cos = self.atlas.first_hits(o_local, d_local, tfar=dist[rays])
         ok = (tri >= 0) & (self.atlas_owner[np.maximum(tri, 0)] == owner) & (d_hit < dist[rays])
         # Several actors may be hit by one ray: write the farthest first so the nearest wins.
+        # (|cos| of the incidence does not depend on the frame.)
         sel = np.nonzero(ok)[0]
         sel = sel[np.argsort(-d_hit[sel], kind="stable")]
-        r, t, j = rays[sel], tri[sel], owner[sel]
+        r, t = rays[sel], tri[sel]
         dist[r] = d_hit[sel]
         rho[r] = self.atlas.reflectivity[t]
-        ids[r] = self.mover_ids[j]
-        n = self.atlas.normals[t]
-        normals[r] = np.stack([c[sel] * n[:, 0] - s[sel] * n[:, 1], s[sel] * n[:, 0] + c[sel] * n[:, 1], n[:, 2]], 1)
+        ids[r] = self.mover_ids[owner[sel]]
+        cos_inc[r] = cos[sel]
 
     def _candidate_rays(self, boxes: np.ndarray, sensor_xy: np.ndarray, ego_yaw: float, dist: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
@@ -302,30 +342,30 @@ class LidarScanner:
     def scan(self, t_end: float, rng: np.random.Generator) -> Sweep:
         """Cast one sweep ending at ``t_end`` (s). ``rng`` draws the range noise."""
         cfg = self.cfg
-        t_ray, origin, dirs = self.sweep_rays(t_end)
-        dist, tri = self.static.first_hits(origin, dirs)
-        hit = np.nonzero(tri >= 0)[0]
-        rho = np.zeros(len(dist), np.float32)
-        ids = np.zeros(len(dist), np.int32)
-        normals = np.zeros((len(dist), 3))
-        rho[hit] = self.static.reflectivity[tri[hit]]
-        ids[hit] = self.static_ids[tri[hit]]
-        normals[hit] = self.static.normals[tri[hit]]
+        t_col, origin_col, yaw = self._column_poses(t_end)
+        origin, dirs = np.repeat(origin_col, N_BEAMS, axis=0), self._rotate_pattern(yaw)
+        dist, tri, cos_inc = self.static.first_hits(origin, dirs)
+        face = np.maximum(tri, 0)             # a miss reads face 0; its infinite distance drops it
+        rho = np.take(self.static.reflectivity, face)
+        ids = np.take(self.static_ids, face)
         T_end = self.world.ego_pose(t_end)
         T_lidar = T_end @ self.T_ego_from_lidar                          # T_global_from_lidar at t_end
         ego_yaw = float(np.arctan2(T_end[1, 0], T_end[0, 0]))
-        self._cast_movers(t_end, origin, dirs, T_lidar[:2, 3], ego_yaw, dist, rho, ids, normals)
-        cos_inc = np.abs(np.einsum("md,md->m", normals, dirs))
+        self._cast_movers(t_end, origin, dirs, T_lidar[:2, 3], ego_yaw, dist, rho, ids, cos_inc)
         meas = dist + cfg.range_noise_sigma * rng.standard_normal(len(dist))
         with np.errstate(invalid="ignore", divide="ignore"):
             power = rho * cos_inc / meas ** 2
-        keep = np.nonzero(np.isfinite(dist) & (meas >= cfg.min_range) & (meas <= cfg.max_range)
-                          & (power >= cfg.min_return))[0]
-        # Into the lidar frame at t_end: p = R (origin - t) + (R dir) meas, R = R_lidar_from_global.
+        keep = np.flatnonzero(np.isfinite(dist) & (meas >= cfg.min_range) & (meas <= cfg.max_range)
+                              & (power >= cfg.min_return))
+        col = keep // N_BEAMS
+        # Into the lidar frame at t_end: p = R (origin - t) + (R dir) meas, R = R_lidar_from_global;
+        # the first term once per column.
         R_lidar_from_global = T_lidar[:3, :3].T
-        dir_lidar = (R_lidar_from_global @ dirs[keep].T).T
-        origin_lidar = (R_lidar_from_global @ (origin[keep] - T_lidar[:3, 3]).T).T
-        p_lidar = origin_lidar + dir_lidar * meas[keep, None]
-        intensity = np.round(255.0 * np.clip(power[keep] * cfg.intensity_ref_range ** 2, 0.0, 1.0))
-        pts = np.concatenate([p_lidar, intensity[:, None], self.ring[keep, None]], 1).astype(np.float32)
-        return Sweep(pts, t_ray[keep], ids[keep], rho[keep], cos_inc[keep], meas[keep], dir_lidar)
+        dir_lidar = np.take(dirs, keep, axis=0) @ R_lidar_from_global.T
+        origin_lidar = (origin_col - T_lidar[:3, 3]) @ R_lidar_from_global.T
+        meas, power = meas[keep], power[keep]
+        pts = np.empty((len(keep), 5), np.float32)
+        pts[:, :3] = np.take(origin_lidar, col, axis=0) + dir_lidar * meas[:, None]
+        pts[:, 3] = np.round(255.0 * np.clip(power * cfg.intensity_ref_range ** 2, 0.0, 1.0))
+        pts[:, 4] = self.ring[keep]
+        return Sweep(pts, t_col[col], ids[keep], rho[keep], cos_inc[keep], meas, dir_lidar)

@@ -137,14 +137,17 @@ def build_world(s: MakeSettings, idx: int) -> World:
     return world
 
 
-def generate_scene(s: MakeSettings, dataroot: Path, idx: int) -> int:
-    """Render, scan, label and write one scene. Returns its number of samples."""
+def generate_scene(s: MakeSettings, dataroot: Path, idx: int, threads: int = 1) -> int:
+    """Render, scan, label and write one scene. Returns its number of samples.
+
+    ``threads``: the lidar's ray casting is split over this many threads (the bytes do not depend
+    on it)."""
     cfg = s.cfg
     world = build_world(s, idx)
     rng_sensor = scene_rng(s.seed, idx, 1)
     renderer = _renderer(cfg, s.gl)
     renderer.set_world(world, key=(s.seed, idx, id(world)))
-    scanner = LidarScanner(cfg.lidar, world)
+    scanner = LidarScanner(cfg.lidar, world, threads=threads)
     cams = rig.cameras(cfg.camera.resolution)
     # Degradation draws from its own stream, so the clean sensor data (and the labels counted
     # on them) are the same bytes with or without it: paired datasets.
@@ -287,8 +290,8 @@ def _worker_init(gl):
 
 
 def _task(args):
-    s, dataroot, idx = args
-    return idx, generate_scene(s, dataroot, idx)
+    s, dataroot, idx, threads = args
+    return idx, generate_scene(s, dataroot, idx, threads)
 
 
 def check_resume(s: MakeSettings, dataroot: Path) -> list[int]:
@@ -355,13 +358,16 @@ def make(s: MakeSettings, dataroot: Path, workers: int, progress: bool = True) -
     done_samples = 0
     bar = tqdm(total=s.n_scenes, initial=s.n_scenes - len(todo), unit="scene", disable=not progress,
                desc="simgen make", dynamic_ncols=True)
-    tasks = [(s, dataroot, i) for i in todo]
-    if workers <= 1 or len(todo) <= 1:
+    n_proc = max(1, min(workers, len(todo)))
+    # The cores left to each worker process cast its lidar rays in parallel.
+    threads = max(1, len(os.sched_getaffinity(0)) // n_proc)
+    tasks = [(s, dataroot, i, threads) for i in todo]
+    if n_proc == 1:
         results = map(_task, tasks)
         pool = None
     else:
         ctx = mp.get_context("spawn")
-        pool = ctx.Pool(min(workers, len(todo)), initializer=_worker_init, initargs=(s.gl,))
+        pool = ctx.Pool(n_proc, initializer=_worker_init, initargs=(s.gl,))
         results = pool.imap_unordered(_task, tasks)
     try:
         for _idx, n in results:

@@ -5,6 +5,7 @@ the frame of the map PNG: pixel (row, col) = (H - y / 0.1, x / 0.1).
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -77,9 +78,13 @@ class World:
     def boxes_at(self, t: float) -> np.ndarray:
         """(n, 7) boxes (x, y, z, l, w, h, yaw) of all actors at time ``t`` (linear interpolation)."""
         xy = _interp(self.times, self.xy, t)
-        z = _interp(self.times, self.z[..., None], t)[:, 0]
-        size = np.array([a.size for a in self.actors])
-        return np.concatenate([xy, z[:, None], size, self.yaw[:, None]], axis=1)
+        z = _interp(self.times, self.z[..., None], t)
+        return np.concatenate([xy, z, self.sizes, self.yaw[:, None]], axis=1)
+
+    @functools.cached_property
+    def sizes(self) -> np.ndarray:
+        """(n, 3) l, w, h of all actors."""
+        return np.array([a.size for a in self.actors], dtype=np.float64).reshape(-1, 3)
 
     def speed_at(self, t: float) -> np.ndarray:
         """(n,) speeds (m/s) at time ``t``."""

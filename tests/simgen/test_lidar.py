@@ -343,7 +343,7 @@ def test_embree_matches_brute_force(tiny_world):
     mesh = tiny_world.static_mesh
     o, d = _road_rays(tiny_world, 1500, seed=1)
     target = RayTarget(mesh, mesh.metadata["reflectivity"], engine="embree")
-    dist, tri = target.first_hits(o, d)
+    dist, tri, cos = target.first_hits(o, d)
     ref = _brute_force_first_hit(mesh, o, d)
     np.testing.assert_array_equal(np.isfinite(dist), np.isfinite(ref))
     np.testing.assert_array_equal(np.isfinite(dist), tri >= 0)
@@ -351,6 +351,25 @@ def test_embree_matches_brute_force(tiny_world):
     assert 0.3 < both.mean() < 0.95
     np.testing.assert_allclose(dist[both], ref[both], rtol=0, atol=1e-5)
     np.testing.assert_allclose(target.reflectivity[tri[both]], mesh.metadata["reflectivity"][tri[both]])
+    n = mesh.face_normals[tri[both]]
+    np.testing.assert_allclose(cos[both], np.abs(np.einsum("md,md->m", n, d[both])), rtol=0, atol=1e-12)
+    assert np.all(cos[~both] == 0)
+
+
+def test_threaded_casting_gives_the_same_hits(tiny_world):
+    """A batch split over threads returns exactly what one call returns, tfar included."""
+    from simgen.lidar import MIN_RAYS_PER_THREAD
+    mesh = tiny_world.static_mesh
+    o, d = _road_rays(tiny_world, 3 * MIN_RAYS_PER_THREAD, seed=4)
+    tfar = np.random.default_rng(5).uniform(5.0, 60.0, len(o))
+    refl = mesh.metadata["reflectivity"]
+    one = RayTarget(mesh, refl, engine="embree", threads=1)
+    three = RayTarget(mesh, refl, engine="embree", threads=3)
+    for kw in ({}, {"tfar": tfar}):
+        a, b = one.first_hits(o, d, **kw), three.first_hits(o, d, **kw)
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+    assert 0.2 < np.isfinite(a[0]).mean() < 0.95
 
 
 def test_embree_matches_trimesh_triangle_engine(tiny_world):
@@ -358,8 +377,8 @@ def test_embree_matches_trimesh_triangle_engine(tiny_world):
     mesh = tiny_world.static_mesh
     o, d = _road_rays(tiny_world, 2000, seed=2)
     refl = mesh.metadata["reflectivity"]
-    d_e, t_e = RayTarget(mesh, refl, engine="embree").first_hits(o, d)
-    d_t, t_t = RayTarget(mesh, refl, engine="triangle").first_hits(o, d)
+    d_e, t_e, _ = RayTarget(mesh, refl, engine="embree").first_hits(o, d)
+    d_t, t_t, _ = RayTarget(mesh, refl, engine="triangle").first_hits(o, d)
     np.testing.assert_array_equal(t_e >= 0, t_t >= 0)
     both = (t_e >= 0) & (t_t >= 0)
     assert both.mean() > 0.3
