@@ -17,6 +17,7 @@ re-creating OffscreenRenderer leaks EGL contexts.
 """
 from __future__ import annotations
 
+import functools
 import os
 import types
 
@@ -32,6 +33,7 @@ from .world import World
 T_CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 SKY = (0.62, 0.74, 0.88)
 GL_PLATFORMS = ("egl", "osmesa")
+STATIC_TILE = 40.0   # metres: the side of the static world's culled tiles
 
 
 def _single_sample_framebuffers(renderer_module) -> None:
@@ -53,20 +55,22 @@ def _single_sample_framebuffers(renderer_module) -> None:
     renderer_module.glRenderbufferStorageMultisample = storage
 
 
-def _read_single_sample_framebuffer(renderer, scene, flags):
+def _read_single_sample_framebuffer(renderer, scene, flags, with_depth: bool = True):
     """Stands in for pyrender's ``Renderer._read_main_framebuffer`` (EGL), given single-sample
     buffers: read the render target directly, without pyrender's blit into a second framebuffer,
     and linearise depth with whole-array float32 arithmetic instead of boolean-mask indexing.
 
     Returns rgba (H, W, 4) uint8 and depth (H, W) float32 camera z (m), 0 where nothing was hit,
-    both top row first, as pyrender's reader does.
+    both top row first, as pyrender's reader does; depth is None unless ``with_depth``.
     """
     from OpenGL.GL import (GL_DEPTH_COMPONENT, GL_FLOAT, GL_READ_FRAMEBUFFER, GL_RGBA, GL_UNSIGNED_BYTE,
                            glBindFramebuffer, glReadPixels)
     w, h = renderer._main_fb_dims
     glBindFramebuffer(GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
-    ndc = np.frombuffer(glReadPixels(0, 0, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w)[::-1]
     rgba = np.frombuffer(glReadPixels(0, 0, w, h, GL_RGBA, GL_UNSIGNED_BYTE), np.uint8).reshape(h, w, 4)[::-1]
+    if not with_depth:
+        return rgba, None
+    ndc = np.frombuffer(glReadPixels(0, 0, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w)[::-1]
     cam = scene.main_camera_node.camera
     n, f = cam.znear, cam.zfar
     depth = (2.0 * n * f) / (f + n - (2.0 * ndc - 1.0) * (f - n))      # float32, as pyrender computes it
@@ -102,6 +106,13 @@ class Renderer:
     world's face table (0 = sky). Looking the indices up gives the shaded rgb image and the
     actor id per pixel at once, both exact: there is no second segmentation pass and no colour
     is ever blended (the framebuffers are single-sample).
+
+    What is drawn per camera: the static world in square tiles of ``STATIC_TILE`` metres and the
+    moving actors, each culled by its bounding sphere against the view frustum. A software
+    rasteriser transforms every vertex it is given, so the tiles spare it most of the world.
+    pyrender's own draw list (every mesh node, sorted by distance on every frame, then the hidden
+    ones skipped) is replaced on this instance by the culled list: opaque, depth-tested geometry
+    needs no sorting.
     """
 
     def __init__(self, cfg: CameraConfig, platform: str | None = None):
@@ -113,9 +124,13 @@ class Renderer:
         self.cfg = cfg
         self.width, self.height = cfg.resolution
         self._gl = pyrender.OffscreenRenderer(self.width, self.height)
+        gl_renderer = self._gl._renderer
+        self._drawn: list = []
+        gl_renderer._sorted_mesh_nodes = lambda scene: self._drawn
+        self._readers = None
         if self._gl._platform.supports_framebuffers():      # EGL; OSMesa reads its own window buffer
-            self._gl._renderer._read_main_framebuffer = types.MethodType(_read_single_sample_framebuffer,
-                                                                         self._gl._renderer)
+            self._readers = {d: types.MethodType(functools.partial(_read_single_sample_framebuffer, with_depth=d),
+                                                 gl_renderer) for d in (False, True)}
         self.scene = None
         self._world_key = None
 
@@ -128,6 +143,7 @@ class Renderer:
         """Build the pyrender scene and the face tables of ``world`` (skipped when ``key`` is unchanged)."""
         if key == self._world_key:
             return
+        import trimesh
         pr = self._pr
         sun_az = float(world.meta.get("sun_azimuth", 0.8))
         sun_el = float(world.meta.get("sun_elevation", 0.9))
@@ -146,9 +162,8 @@ class Renderer:
             n_faces += len(mesh.faces)
             return scene.add(pr.Mesh.from_trimesh(coded, smooth=False))
 
-        import trimesh
-        # Actors that never move join the static world in one node (fewer draw calls); their
-        # faces still carry their own ids through the face table.
+        # Actors that never move join the static world (fewer draw calls); their faces still
+        # carry their own ids through the face table.
         moving = world.speed.max(axis=1) > 0
         boxes = world.boxes_at(0.0)
         parts, part_owner = [world.static_mesh], [np.zeros(len(world.static_mesh.faces), np.int32)]
@@ -158,8 +173,10 @@ class Renderer:
                 m.apply_transform(geo.pose_2d(boxes[i, 0], boxes[i, 1], boxes[i, 6], boxes[i, 2]))
                 parts.append(m)
                 part_owner.append(np.full(len(m.faces), a.id, np.int32))
-        merged = trimesh.util.concatenate(parts)
-        add(merged, sun, np.concatenate(part_owner))
+        tiles = static_tiles(trimesh.util.concatenate(parts), np.concatenate(part_owner), STATIC_TILE)
+        self.static_nodes = [add(mesh, sun, owner) for mesh, owner, _, _ in tiles]
+        self.static_centre = np.array([t[2] for t in tiles]).reshape(-1, 3)
+        self.static_radius = np.array([t[3] for t in tiles])
         self.actor_nodes, self.radius = {}, {}
         for i, (a, yaw) in enumerate(zip(world.actors, world.yaw)):
             # The ego is not rendered (no pixels of the own car); static actors are merged above.
@@ -184,7 +201,8 @@ class Renderer:
         albedo = np.asarray(mesh.visual.face_colors, np.float64)[:, :3]
         return np.clip(albedo * light[:, None], 0, 255).astype(np.uint8)
 
-    def render(self, cam: Camera, T_global_from_cam: np.ndarray, actor_poses: dict[int, np.ndarray]):
+    def render(self, cam: Camera, T_global_from_cam: np.ndarray, actor_poses: dict[int, np.ndarray],
+               with_depth: bool = True, lazy_ids: bool = False):
         """Render one camera.
 
         Parameters
@@ -192,11 +210,14 @@ class Renderer:
         cam : the camera (intrinsics for this renderer's resolution).
         T_global_from_cam : (4, 4) camera pose, nuScenes camera frame.
         actor_poses : actor id -> (4, 4) T_global_from_box at this camera's time.
+        with_depth : read the depth buffer back too (only fog needs it).
+        lazy_ids : return the ids as an :class:`IdImage` (looked up where read) instead of an array.
 
         Returns
         -------
-        rgb : (H, W, 3) uint8.  depth : (H, W) float32 camera-frame z (m), 0 where nothing was hit.
-        ids : (H, W) int32 actor id per pixel, 0 for the static world and the sky.
+        rgb : (H, W, 3) uint8.  depth : (H, W) float32 camera-frame z (m), 0 where nothing was
+        hit; None without ``with_depth``.  ids : (H, W) int32 actor id per pixel, 0 for the
+        static world and the sky (an :class:`IdImage` with ``lazy_ids``).
         """
         pr = self._pr
         K = cam.K
@@ -205,17 +226,26 @@ class Renderer:
         ids = list(self.actor_nodes)
         centres = np.array([actor_poses[i][:3, 3] for i in ids]).reshape(-1, 3)
         visible = self._in_view(cam, T_global_from_cam, centres, np.array([self.radius[i] for i in ids]))
-        for aid, vis in zip(ids, visible):
+        # Near to far (actors, then the tiles by distance), so that the depth test rejects more.
+        tiles = np.flatnonzero(self._in_view(cam, T_global_from_cam, self.static_centre, self.static_radius))
+        tiles = tiles[np.argsort(np.linalg.norm(self.static_centre[tiles] - T_global_from_cam[:3, 3], axis=1),
+                                 kind="stable")]
+        self._drawn = []
+        for aid in np.array(ids)[visible]:
             node = self.actor_nodes[aid]
-            node.mesh.is_visible = bool(vis)
-            if vis:
-                self.scene.set_pose(node, actor_poses[aid])
+            self.scene.set_pose(node, actor_poses[aid])
+            self._drawn.append(node)
+        self._drawn += [self.static_nodes[i] for i in tiles]
+        if self._readers is not None:
+            self._gl._renderer._read_main_framebuffer = self._readers[with_depth]
         coded, depth = self._gl.render(self.scene, flags=pr.RenderFlags.FLAT | pr.RenderFlags.RGBA)
         # RGBA bytes read as one little-endian uint32 per pixel: R | G << 8 | B << 16 | A << 24.
         face = np.ascontiguousarray(coded).view(np.uint32)[..., 0] & 0xFFFFFF
         # One 4-byte look-up per pixel (np.take on a flat table), then drop the pad byte.
         rgbx = np.take(self.face_rgbx, face).view(np.uint8).reshape(*face.shape, 4)
-        return cv2.cvtColor(rgbx, cv2.COLOR_RGBA2RGB), depth.astype(np.float32), np.take(self.face_owner, face)
+        depth = depth.astype(np.float32, copy=False) if with_depth else None
+        ids = IdImage(face, self.face_owner)
+        return cv2.cvtColor(rgbx, cv2.COLOR_RGBA2RGB), depth, ids if lazy_ids else np.asarray(ids)
 
     def _in_view(self, cam: Camera, T_global_from_cam, centres, radius) -> np.ndarray:
         """Whether each bounding sphere may touch the view frustum (conservative)."""
@@ -236,6 +266,50 @@ class Renderer:
         for n in planes:
             inside &= p @ n > -radius
         return inside
+
+
+class IdImage:
+    """(H, W) int32 actor ids, looked up from the rendered face indices only where they are read.
+
+    ``ids[v, u]`` (any numpy index) gives the ids there; ``np.asarray(ids)`` the whole image. The
+    visibility labels read a few thousand pixels per camera, so `make` never looks an image up
+    in full. Index it or convert it: it has no arithmetic or comparisons of its own.
+    """
+
+    def __init__(self, face: np.ndarray, face_owner: np.ndarray):
+        self.face, self.face_owner = face, face_owner
+        self.shape = face.shape
+
+    def __getitem__(self, index) -> np.ndarray:
+        return np.take(self.face_owner, self.face[index])
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        ids = np.take(self.face_owner, self.face)
+        return ids if dtype is None else ids.astype(dtype)
+
+
+def static_tiles(mesh, owner: np.ndarray, size: float) -> list[tuple]:
+    """Split a mesh's faces into square tiles of ``size`` metres by their centroid's x, y.
+
+    Returns, per non-empty tile in (tile x, tile y) order: the tile's mesh (its own compact
+    vertices, the faces' colours kept), the faces' ``owner`` entries (F,), and the centre (3,)
+    and radius of a sphere holding all its vertices. Faces keep their relative order.
+    """
+    import trimesh
+    key = np.floor(np.asarray(mesh.triangles_center)[:, :2] / size).astype(np.int64)
+    _, tile = np.unique(key, axis=0, return_inverse=True)
+    tile = tile.reshape(-1)
+    order = np.argsort(tile, kind="stable")
+    colours = np.asarray(mesh.visual.face_colors)
+    out = []
+    for f in np.split(order, np.flatnonzero(np.diff(tile[order])) + 1):
+        used, local = np.unique(mesh.faces[f], return_inverse=True)
+        v = np.asarray(mesh.vertices)[used]
+        sub = trimesh.Trimesh(v, local.reshape(-1, 3), process=False)
+        sub.visual.face_colors = colours[f]
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        out.append((sub, owner[f], (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2))
+    return out
 
 
 def _look_along(direction: np.ndarray) -> np.ndarray:

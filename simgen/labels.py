@@ -58,7 +58,8 @@ def visible_fraction(actors: list[Actor], poses: list[np.ndarray], cams: list, c
     poses : per camera, (k, 4, 4) T_global_from_box of those actors at that camera's time.
     cams : the rig cameras (``K``, ``resolution``).
     cam_poses : per camera, (4, 4) T_global_from_cam.
-    id_images : per camera, (H, W) int32 rendered actor ids.
+    id_images : per camera, (H, W) int32 rendered actor ids: an array, or anything that reads
+        them as ``id_img[v, u]`` (:class:`simgen.camera.IdImage`).
 
     Returns
     -------

@@ -248,7 +248,7 @@ def _key_frame(s, idx: int, world: World, renderer, cams, calib, rec, add_sample
         b = world.boxes_at(t_cam)
         poses = geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
         pose_of = {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate}
-        rgb, depth, ids = renderer.render(cam, T_gc, pose_of)
+        rgb, depth, ids = renderer.render(cam, T_gc, pose_of, with_depth=cfg.degrade.alpha > 0, lazy_ids=True)
         if cfg.camera.renderer == "mitsuba":
             # Path-traced rgb; the labels keep the rasterised id pass, so they do not depend on
             # the renderer (the two agree geometrically: tests/simgen/test_mitsuba.py).
