@@ -143,7 +143,6 @@ class Renderer:
         """Build the pyrender scene and the face tables of ``world`` (skipped when ``key`` is unchanged)."""
         if key == self._world_key:
             return
-        import trimesh
         pr = self._pr
         sun_az = float(world.meta.get("sun_azimuth", 0.8))
         sun_el = float(world.meta.get("sun_elevation", 0.9))
@@ -152,38 +151,44 @@ class Renderer:
         colours, owners = [np.array([[int(255 * c) for c in SKY]], np.uint8)], [np.zeros(1, np.int32)]
         n_faces = 1
 
-        def add(mesh, sun_local, owner):
+        def add(triangles, normals, albedo, sun_local, owner):
             nonlocal n_faces
-            colours.append(self._shaded(mesh, sun_local))
-            owners.append(np.broadcast_to(np.asarray(owner, np.int32), (len(mesh.faces),)))
-            coded = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-            coded.visual.face_colors = np.concatenate(
-                [encode_ids(n_faces + np.arange(len(mesh.faces))), np.full((len(mesh.faces), 1), 255, np.uint8)], 1)
-            n_faces += len(mesh.faces)
-            return scene.add(pr.Mesh.from_trimesh(coded, smooth=False))
+            colours.append(self._shaded(normals, albedo, sun_local))
+            owners.append(np.broadcast_to(np.asarray(owner, np.int32), (len(triangles),)))
+            node = scene.add(coded_mesh(pr, triangles, n_faces))
+            n_faces += len(triangles)
+            return node
 
         # Actors that never move join the static world (fewer draw calls); their faces still
         # carry their own ids through the face table.
         moving = world.speed.max(axis=1) > 0
         boxes = world.boxes_at(0.0)
-        parts, part_owner = [world.static_mesh], [np.zeros(len(world.static_mesh.faces), np.int32)]
+        sm = world.static_mesh
+        tris, norms, albedo, owner = ([np.asarray(sm.triangles)], [np.asarray(sm.face_normals)],
+                                      [np.asarray(sm.visual.face_colors)[:, :3]], [np.zeros(len(sm.faces), np.int32)])
         for i, a in enumerate(world.actors):
             if a.annotate and not moving[i]:
-                m = a.mesh.copy()
-                m.apply_transform(geo.pose_2d(boxes[i, 0], boxes[i, 1], boxes[i, 6], boxes[i, 2]))
-                parts.append(m)
-                part_owner.append(np.full(len(m.faces), a.id, np.int32))
-        tiles = static_tiles(trimesh.util.concatenate(parts), np.concatenate(part_owner), STATIC_TILE)
-        self.static_nodes = [add(mesh, sun, owner) for mesh, owner, _, _ in tiles]
-        self.static_centre = np.array([t[2] for t in tiles]).reshape(-1, 3)
-        self.static_radius = np.array([t[3] for t in tiles])
+                T = geo.pose_2d(boxes[i, 0], boxes[i, 1], boxes[i, 6], boxes[i, 2])
+                tris.append(np.asarray(a.mesh.triangles) @ T[:3, :3].T + T[:3, 3])
+                norms.append(np.asarray(a.mesh.face_normals) @ T[:3, :3].T)
+                albedo.append(np.asarray(a.mesh.visual.face_colors)[:, :3])
+                owner.append(np.full(len(a.mesh.faces), a.id, np.int32))
+        tris, norms, albedo, owner = (np.concatenate(x) for x in (tris, norms, albedo, owner))
+        self.static_nodes, centre, radius = [], [], []
+        for f in static_tiles(tris, STATIC_TILE):
+            self.static_nodes.append(add(tris[f], norms[f], albedo[f], sun, owner[f]))
+            lo, hi = tris[f].reshape(-1, 3).min(axis=0), tris[f].reshape(-1, 3).max(axis=0)
+            centre.append((lo + hi) / 2)
+            radius.append(float(np.linalg.norm(hi - lo)) / 2)
+        self.static_centre, self.static_radius = np.array(centre).reshape(-1, 3), np.array(radius)
         self.actor_nodes, self.radius = {}, {}
         for i, (a, yaw) in enumerate(zip(world.actors, world.yaw)):
             # The ego is not rendered (no pixels of the own car); static actors are merged above.
             if a.annotate and moving[i]:
                 c, s = np.cos(yaw), np.sin(yaw)
                 sun_box = np.array([c * sun[0] + s * sun[1], -s * sun[0] + c * sun[1], sun[2]])  # yaw is constant
-                self.actor_nodes[a.id] = add(a.mesh, sun_box, a.id)
+                self.actor_nodes[a.id] = add(np.asarray(a.mesh.triangles), np.asarray(a.mesh.face_normals),
+                                             np.asarray(a.mesh.visual.face_colors)[:, :3], sun_box, a.id)
                 self.radius[a.id] = float(np.linalg.norm(a.size)) / 2
         if n_faces >= 2 ** 24:
             raise ValueError(f"{n_faces} faces do not fit the 24-bit face index of the id pass")
@@ -194,12 +199,10 @@ class Renderer:
         self.scene = scene
         self._world_key = key
 
-    def _shaded(self, mesh, sun: np.ndarray) -> np.ndarray:
-        """(F, 3) uint8 face colours lit by ambient + sun * max(0, n . sun)."""
-        normals = np.asarray(mesh.face_normals)
+    def _shaded(self, normals: np.ndarray, albedo: np.ndarray, sun: np.ndarray) -> np.ndarray:
+        """(F, 3) uint8 face colours: (F, 3) albedo lit by ambient + sun * max(0, n . sun)."""
         light = self.cfg.ambient + self.cfg.sun_intensity / 5.0 * np.clip(normals @ sun, 0.0, None)
-        albedo = np.asarray(mesh.visual.face_colors, np.float64)[:, :3]
-        return np.clip(albedo * light[:, None], 0, 255).astype(np.uint8)
+        return np.clip(albedo.astype(np.float64) * light[:, None], 0, 255).astype(np.uint8)
 
     def render(self, cam: Camera, T_global_from_cam: np.ndarray, actor_poses: dict[int, np.ndarray],
                with_depth: bool = True, lazy_ids: bool = False):
@@ -288,28 +291,30 @@ class IdImage:
         return ids if dtype is None else ids.astype(dtype)
 
 
-def static_tiles(mesh, owner: np.ndarray, size: float) -> list[tuple]:
-    """Split a mesh's faces into square tiles of ``size`` metres by their centroid's x, y.
+def static_tiles(triangles: np.ndarray, size: float) -> list[np.ndarray]:
+    """Split (F, 3, 3) triangles into square tiles of ``size`` metres by their centroid's x, y.
 
-    Returns, per non-empty tile in (tile x, tile y) order: the tile's mesh (its own compact
-    vertices, the faces' colours kept), the faces' ``owner`` entries (F,), and the centre (3,)
-    and radius of a sphere holding all its vertices. Faces keep their relative order.
+    Returns the face indices of each non-empty tile, tiles in (x, y) order, faces in their order.
     """
-    import trimesh
-    key = np.floor(np.asarray(mesh.triangles_center)[:, :2] / size).astype(np.int64)
-    _, tile = np.unique(key, axis=0, return_inverse=True)
-    tile = tile.reshape(-1)
-    order = np.argsort(tile, kind="stable")
-    colours = np.asarray(mesh.visual.face_colors)
-    out = []
-    for f in np.split(order, np.flatnonzero(np.diff(tile[order])) + 1):
-        used, local = np.unique(mesh.faces[f], return_inverse=True)
-        v = np.asarray(mesh.vertices)[used]
-        sub = trimesh.Trimesh(v, local.reshape(-1, 3), process=False)
-        sub.visual.face_colors = colours[f]
-        lo, hi = v.min(axis=0), v.max(axis=0)
-        out.append((sub, owner[f], (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2))
-    return out
+    cell = np.floor(triangles[:, :, :2].mean(axis=1) / size).astype(np.int64)
+    cell -= cell.min(axis=0) if len(cell) else 0
+    key = cell[:, 0] * (int(cell[:, 1].max(initial=0)) + 1) + cell[:, 1]
+    order = np.argsort(key, kind="stable")
+    return np.split(order, np.flatnonzero(np.diff(key[order])) + 1)
+
+
+def coded_mesh(pr, triangles: np.ndarray, first: int):
+    """A pyrender mesh of (F, 3, 3) triangles, face f coloured with the code of index ``first + f``
+    (:func:`encode_ids`), built as ``pyrender.Mesh.from_trimesh(..., smooth=False)`` builds a mesh
+    with face colours (same material), less the normals the unlit pass does not read."""
+    n = len(triangles)
+    colours = np.full((n, 4), 255, np.uint8)
+    colours[:, :3] = encode_ids(first + np.arange(n))
+    material = pr.MetallicRoughnessMaterial(alphaMode="BLEND", baseColorFactor=[1.0, 1.0, 1.0, 1.0],
+                                            metallicFactor=0.2, roughnessFactor=0.8)
+    primitive = pr.Primitive(positions=triangles.reshape(-1, 3), color_0=np.repeat(colours, 3, axis=0),
+                             material=material, mode=pr.constants.GLTF.TRIANGLES)
+    return pr.Mesh(primitives=[primitive])
 
 
 def _look_along(direction: np.ndarray) -> np.ndarray:

@@ -74,9 +74,9 @@ def visible_fraction(actors: list[Actor], poses: list[np.ndarray], cams: list, c
     candidate = np.zeros((k, m), bool)
     seen = np.zeros((k, m), bool)
     for cam, T_box, T_gc, id_img in zip(cams, poses, cam_poses, id_images):
-        R, t = T_box[:, None, :3, :3], T_box[:, None, :3, 3]
-        p = np.einsum("kmij,kmj->kmi", np.broadcast_to(R, (k, m, 3, 3)), local[..., :3]) + t
-        n = np.einsum("kmij,kmj->kmi", np.broadcast_to(R, (k, m, 3, 3)), local[..., 3:])
+        R_T = np.transpose(T_box[:, :3, :3], (0, 2, 1))              # (k, 3, 3): row vectors @ R^T
+        p = local[..., :3] @ R_T + T_box[:, None, :3, 3]
+        n = local[..., 3:] @ R_T
         facing = np.einsum("kmi,kmi->km", n, p - T_gc[:3, 3]) < 0
         p_cam = geo.apply(geo.invert(T_gc), p.reshape(-1, 3))
         uv, z = geo.project(cam.K, p_cam)
