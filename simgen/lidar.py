@@ -276,7 +276,9 @@ class LidarScanner:
         boxes = self.world.boxes_at(t_end)[self.moving_idx]
         near = np.nonzero(np.hypot(*(boxes[:, :2] - sensor_xy).T)
                           <= self.cfg.max_range + np.hypot(boxes[:, 3], boxes[:, 4]))[0]
-        rays, owner = self._candidate_rays(boxes[near], sensor_xy, ego_yaw, dist)
+        # How far the sensor is, at any firing, from where it is at t_end (the ego moves).
+        travel = float(np.max(np.hypot(*(origin[::N_BEAMS, :2] - sensor_xy).T)))
+        rays, owner = self._candidate_rays(boxes[near], sensor_xy, ego_yaw, dist, travel)
         if len(rays) == 0:
             return
         owner = near[owner]
@@ -302,16 +304,18 @@ class LidarScanner:
         ids[r] = self.mover_ids[owner[sel]]
         cos_inc[r] = cos[sel]
 
-    def _candidate_rays(self, boxes: np.ndarray, sensor_xy: np.ndarray, ego_yaw: float, dist: np.ndarray
-                        ) -> tuple[np.ndarray, np.ndarray]:
+    def _candidate_rays(self, boxes: np.ndarray, sensor_xy: np.ndarray, ego_yaw: float, dist: np.ndarray,
+                        travel: float) -> tuple[np.ndarray, np.ndarray]:
         """The rays that can pass within reach of each of ``boxes`` (k, 7) during the sweep: the
         columns whose azimuth and the rings whose elevation come near its bounding cylinder, less
         the rays whose first static hit (``dist``, per ray) comes before the cylinder's near side.
+        The cylinder is widened by ``travel``, the farthest the sensor gets during the sweep from
+        ``sensor_xy``, its position at the sweep's end.
 
         Returns (ray indices, box index of each), box by box, column by column, ring by ring."""
         rel = boxes[:, :2] - sensor_xy
         d = np.hypot(rel[:, 0], rel[:, 1])
-        r = np.hypot(boxes[:, 3], boxes[:, 4]) / 2 + 1.0       # + how far the sensor moves in one sweep
+        r = np.hypot(boxes[:, 3], boxes[:, 4]) / 2 + travel + 0.05
         inside = d <= r
         with np.errstate(invalid="ignore", divide="ignore"):
             half = np.arcsin(np.minimum(r / d, 1.0)) + np.deg2rad(1.0)   # + the mount tilt's effect
