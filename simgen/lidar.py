@@ -28,7 +28,7 @@ ELEVATIONS_DEG = np.linspace(-30.67, 10.67, N_BEAMS)   # 1.33 deg apart; ring 0 
 SWEEP_PERIOD = 0.05
 ATLAS_SPACING = 500.0   # metres between actor copies in the atlas: far beyond any candidate ray's reach
 
-# A batch is split over threads only when each gets at least this many rays.
+# A sweep's work is split over threads only when each gets at least this many rays.
 MIN_RAYS_PER_THREAD = 4096
 
 try:
@@ -82,16 +82,13 @@ class RayTarget:
     sweep, trimesh's per-call work (re-normalising directions, re-validating caches) costs more
     than the ray casting. Coordinates are taken relative to the mesh's lower corner so that
     float32 keeps millimetre precision anywhere in the world.
-
-    ``threads``: embreex releases the GIL while it casts, so a large batch is split over this many
-    threads (the rays are independent: the result does not depend on the split).
     """
 
-    def __init__(self, mesh: trimesh.Trimesh, reflectivity: np.ndarray, engine: str = "auto", threads: int = 1):
+    def __init__(self, mesh: trimesh.Trimesh, reflectivity: np.ndarray, engine: str = "auto"):
         vertices, faces = np.array(mesh.vertices, np.float64), np.array(mesh.faces, np.int64)
         if engine == "auto":
             engine = "embree" if _HAS_EMBREE else "triangle"
-        self.engine, self.threads = engine, max(1, int(threads))
+        self.engine = engine
         self.origin = vertices.min(axis=0) if len(vertices) else np.zeros(3)
         if engine == "embree":
             from embreex import rtcore_scene
@@ -114,16 +111,8 @@ class RayTarget:
             return np.zeros(0, np.int64)
         if self.engine != "embree":
             return np.asarray(self._scene.intersects_first(origins, dirs), dtype=np.int64)
-        o = (origins - self.origin).astype(np.float32)
-        d = dirs.astype(np.float32)
-        t = None if tfar is None else tfar.astype(np.float32)
-        k = self.threads if len(o) >= MIN_RAYS_PER_THREAD * self.threads else 1
-        if k == 1:
-            return np.asarray(self._scene.run(o, d, dists=t), dtype=np.int64)
-        cut = np.linspace(0, len(o), k + 1).astype(np.int64)
-        parts = _thread_pool(k).map(
-            lambda a, b: self._scene.run(o[a:b], d[a:b], dists=None if t is None else t[a:b]), cut[:-1], cut[1:])
-        return np.concatenate([np.asarray(p, dtype=np.int64) for p in parts])
+        return np.asarray(self._scene.run((origins - self.origin).astype(np.float32), dirs.astype(np.float32),
+                                          dists=None if tfar is None else tfar.astype(np.float32)), dtype=np.int64)
 
     def first_hits(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -184,6 +173,10 @@ class LidarScanner:
     actor are moved into that actor's box frame (plus its atlas offset) and all of them are cast
     in one call; a hit counts only on the intended actor's copy. Rebuilding a BVH of the posed
     actors for every sweep would cost several times more than the casting itself.
+
+    ``threads``: each stage of a sweep (static hits, actor hits, the points) works on contiguous
+    chunks of rays in this many threads; embreex and numpy's array loops release the GIL. The
+    rays are independent and the chunks are joined in order, so the bytes do not depend on it.
     """
 
     def __init__(self, cfg: LidarConfig, world: World, threads: int = 1):
@@ -210,12 +203,13 @@ class LidarScanner:
             verts.append(posed.vertices)
             faces.append(posed.faces + len(sm.vertices))
         self.static = RayTarget(trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False),
-                                np.concatenate([sm.metadata["reflectivity"], statics.refl]), threads=threads)
+                                np.concatenate([sm.metadata["reflectivity"], statics.refl]))
         self.static_ids = np.concatenate([np.zeros(len(sm.faces), np.int32), statics.ids[statics.face_owner]])
         self.sensor_height = float(self.T_ego_from_lidar[2, 3])
         self.ring_elevation = np.deg2rad(ELEVATIONS_DEG)
         self.mover_ids = np.array([world.actors[i].id for i in self.moving_idx], np.int32)
-        self._build_atlas(threads)
+        self.threads = max(1, int(threads))
+        self._build_atlas()
 
     def _column_poses(self, t_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per column of 32 lasers (they fire together): firing time (n_az,), sensor origin
@@ -244,11 +238,18 @@ class LidarScanner:
         t_col, origin, yaw = self._column_poses(t_end)
         return np.repeat(t_col, N_BEAMS), np.repeat(origin, N_BEAMS, axis=0), self._rotate_pattern(yaw)
 
+    def _map(self, fn, n: int) -> list:
+        """``fn(slice)`` over contiguous chunks of ``range(n)``, in threads; results in order."""
+        k = self.threads if n >= MIN_RAYS_PER_THREAD * self.threads else 1
+        cut = np.linspace(0, n, k + 1).astype(np.int64)
+        chunks = [slice(int(a), int(b)) for a, b in zip(cut[:-1], cut[1:])]
+        return [fn(chunks[0])] if k == 1 else list(_thread_pool(k).map(fn, chunks))
+
     def _poses(self, idx: np.ndarray, t: float) -> np.ndarray:
         b = self.world.boxes_at(t)[idx]
         return geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
 
-    def _build_atlas(self, threads: int) -> None:
+    def _build_atlas(self) -> None:
         """One BVH of every moving actor's mesh in its box frame, each at its own offset."""
         k = len(self.moving_idx)
         side = max(1, int(np.ceil(k ** (1 / 3))))
@@ -266,7 +267,7 @@ class LidarScanner:
             self.atlas = None
             return
         self.atlas = RayTarget(trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False),
-                               np.concatenate(refl), threads=threads)
+                               np.concatenate(refl))
         self.atlas_owner = np.concatenate(owner)
 
     def _cast_movers(self, t_end, origin, dirs, sensor_xy, ego_yaw, dist, rho, ids, cos_inc) -> None:
@@ -282,17 +283,23 @@ class LidarScanner:
         if len(rays) == 0:
             return
         owner = near[owner]
-        # Into each actor's box frame (rotation about z by -yaw), then to its atlas copy.
-        c, s = np.cos(boxes[:, 6])[owner], np.sin(boxes[:, 6])[owner]
-        o = np.take(origin, rays, axis=0) - np.take(boxes[:, :3], owner, axis=0)
-        d = np.take(dirs, rays, axis=0)
-        o_local, d_local = np.empty_like(o), np.empty_like(d)
-        for src, dst in ((o, o_local), (d, d_local)):
-            dst[:, 0] = c * src[:, 0] + s * src[:, 1]
-            dst[:, 1] = c * src[:, 1] - s * src[:, 0]
-            dst[:, 2] = src[:, 2]
-        o_local += np.take(self.atlas_offset, owner, axis=0)
-        d_hit, tri, cos = self.atlas.first_hits(o_local, d_local, tfar=dist[rays])
+        c_box, s_box = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+
+        def hits(chunk):
+            r, j = rays[chunk], owner[chunk]
+            # Into each actor's box frame (rotation about z by -yaw), then to its atlas copy.
+            c, s = c_box[j], s_box[j]
+            o = np.take(origin, r, axis=0) - np.take(boxes[:, :3], j, axis=0)
+            d = np.take(dirs, r, axis=0)
+            o_local, d_local = np.empty_like(o), np.empty_like(d)
+            for src, dst in ((o, o_local), (d, d_local)):
+                dst[:, 0] = c * src[:, 0] + s * src[:, 1]
+                dst[:, 1] = c * src[:, 1] - s * src[:, 0]
+                dst[:, 2] = src[:, 2]
+            o_local += np.take(self.atlas_offset, j, axis=0)
+            return self.atlas.first_hits(o_local, d_local, tfar=dist[r])
+
+        d_hit, tri, cos = _join(self._map(hits, len(rays)))
         ok = (tri >= 0) & (self.atlas_owner[np.maximum(tri, 0)] == owner) & (d_hit < dist[rays])
         # Several actors may be hit by one ray: write the farthest first so the nearest wins.
         # (|cos| of the incidence does not depend on the frame.)
@@ -348,7 +355,7 @@ class LidarScanner:
         cfg = self.cfg
         t_col, origin_col, yaw = self._column_poses(t_end)
         origin, dirs = np.repeat(origin_col, N_BEAMS, axis=0), self._rotate_pattern(yaw)
-        dist, tri, cos_inc = self.static.first_hits(origin, dirs)
+        dist, tri, cos_inc = _join(self._map(lambda c: self.static.first_hits(origin[c], dirs[c]), len(dirs)))
         face = np.maximum(tri, 0)             # a miss reads face 0; its infinite distance drops it
         rho = np.take(self.static.reflectivity, face)
         ids = np.take(self.static_ids, face)
@@ -356,20 +363,31 @@ class LidarScanner:
         T_lidar = T_end @ self.T_ego_from_lidar                          # T_global_from_lidar at t_end
         ego_yaw = float(np.arctan2(T_end[1, 0], T_end[0, 0]))
         self._cast_movers(t_end, origin, dirs, T_lidar[:2, 3], ego_yaw, dist, rho, ids, cos_inc)
-        meas = dist + cfg.range_noise_sigma * rng.standard_normal(len(dist))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            power = rho * cos_inc / meas ** 2
-        keep = np.flatnonzero(np.isfinite(dist) & (meas >= cfg.min_range) & (meas <= cfg.max_range)
-                              & (power >= cfg.min_return))
-        col = keep // N_BEAMS
+        noise = cfg.range_noise_sigma * rng.standard_normal(len(dist))
         # Into the lidar frame at t_end: p = R (origin - t) + (R dir) meas, R = R_lidar_from_global;
         # the first term once per column.
         R_lidar_from_global = T_lidar[:3, :3].T
-        dir_lidar = np.take(dirs, keep, axis=0) @ R_lidar_from_global.T
         origin_lidar = (origin_col - T_lidar[:3, 3]) @ R_lidar_from_global.T
-        meas, power = meas[keep], power[keep]
-        pts = np.empty((len(keep), 5), np.float32)
-        pts[:, :3] = np.take(origin_lidar, col, axis=0) + dir_lidar * meas[:, None]
-        pts[:, 3] = np.round(255.0 * np.clip(power * cfg.intensity_ref_range ** 2, 0.0, 1.0))
-        pts[:, 4] = self.ring[keep]
-        return Sweep(pts, t_col[col], ids[keep], rho[keep], cos_inc[keep], meas, dir_lidar)
+
+        def points(chunk):
+            meas = dist[chunk] + noise[chunk]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                power = rho[chunk] * cos_inc[chunk] / meas ** 2
+            ok = np.flatnonzero(np.isfinite(meas) & (meas >= cfg.min_range) & (meas <= cfg.max_range)
+                                & (power >= cfg.min_return))
+            keep = chunk.start + ok
+            col = keep // N_BEAMS
+            meas, power = meas[ok], power[ok]
+            dir_lidar = np.take(dirs, keep, axis=0) @ R_lidar_from_global.T
+            pts = np.empty((len(keep), 5), np.float32)
+            pts[:, :3] = np.take(origin_lidar, col, axis=0) + dir_lidar * meas[:, None]
+            pts[:, 3] = np.round(255.0 * np.clip(power * cfg.intensity_ref_range ** 2, 0.0, 1.0))
+            pts[:, 4] = self.ring[keep]
+            return pts, t_col[col], ids[keep], rho[keep], cos_inc[keep], meas, dir_lidar
+
+        return Sweep(*_join(self._map(points, len(dist))))
+
+
+def _join(parts: list[tuple]) -> tuple:
+    """Per-chunk tuples of arrays -> one tuple of the arrays joined in chunk order."""
+    return parts[0] if len(parts) == 1 else tuple(np.concatenate(a) for a in zip(*parts))
