@@ -3,7 +3,7 @@
 
 Medians over repeats, because machines are shared and noisy. Keys (simgen):
   lidar_ms_per_sweep            one HDL-32E sweep of an urban world, all of LidarScanner.scan, with
-                                Embree split over all cores (as a single `make` worker runs it)
+                                the work split over all cores (as a single `make` worker runs it)
   lidar_ms_per_sweep_1_thread   the same on one thread (as each of `cores` workers runs it)
   lidar_embree_floor_ms         bare Embree intersects_first on the same scene (one posed mesh) and rays
   render_ms_per_image_1600x900  one camera: rgb + depth + id pass

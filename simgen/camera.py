@@ -108,9 +108,9 @@ class Renderer:
     is ever blended (the framebuffers are single-sample).
 
     What is drawn per camera: the static world in square tiles of ``STATIC_TILE`` metres and the
-    moving actors, each culled by its bounding sphere against the view frustum. A software
-    rasteriser transforms every vertex it is given, so the tiles spare it most of the world.
-    pyrender's own draw list (every mesh node, sorted by distance on every frame, then the hidden
+    moving actors, each culled by its bounding sphere against the view frustum, drawn near to
+    far. (A modest gain, about 5% per 1600x900 image: llvmpipe's time goes mostly to filling
+    pixels.) pyrender's own draw list (every mesh node, sorted by distance on every frame, then the hidden
     ones skipped) is replaced on this instance by the culled list: opaque, depth-tested geometry
     needs no sorting.
     """

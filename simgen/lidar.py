@@ -71,7 +71,7 @@ def ray_pattern(cfg: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @functools.lru_cache(maxsize=None)
 def _thread_pool(k: int) -> ThreadPoolExecutor:
     """One pool of ``k`` threads per process, made on first use."""
-    return ThreadPoolExecutor(k, thread_name_prefix="embree")
+    return ThreadPoolExecutor(k, thread_name_prefix="lidar")
 
 
 class RayTarget:
@@ -322,7 +322,7 @@ class LidarScanner:
         Returns (ray indices, box index of each), box by box, column by column, ring by ring."""
         rel = boxes[:, :2] - sensor_xy
         d = np.hypot(rel[:, 0], rel[:, 1])
-        r = np.hypot(boxes[:, 3], boxes[:, 4]) / 2 + travel + 0.05
+        r = np.hypot(boxes[:, 3], boxes[:, 4]) / 2 + travel + 0.05   # + 5 cm of slack
         inside = d <= r
         with np.errstate(invalid="ignore", divide="ignore"):
             half = np.arcsin(np.minimum(r / d, 1.0)) + np.deg2rad(1.0)   # + the mount tilt's effect
