@@ -152,7 +152,8 @@ def _run(args) -> int:
 
 def _make(args) -> int:
     from .config import load_preset, with_degradation, with_renderer, with_resolution
-    from .pipeline import MakeSettings, make
+    from .make import make
+    from .settings import MakeSettings
     cfg = load_preset(args.preset)
     if args.resolution:
         cfg = with_resolution(cfg, *args.resolution)

@@ -13,17 +13,21 @@ Conventions
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+# scipy.spatial is imported where it is used: the process that only coordinates `simgen make`
+# workers imports this module but never needs it (0.3 s).
 
 
 def quat_wxyz_to_matrix(q) -> np.ndarray:
     """(4,) wxyz quaternion -> (3, 3) rotation matrix."""
+    from scipy.spatial.transform import Rotation
     w, x, y, z = np.asarray(q, dtype=np.float64)
     return Rotation.from_quat([x, y, z, w]).as_matrix()
 
 
 def matrix_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
     """(3, 3) rotation matrix -> (4,) wxyz quaternion with w >= 0."""
+    from scipy.spatial.transform import Rotation
     x, y, z, w = Rotation.from_matrix(R).as_quat()
     q = np.array([w, x, y, z])
     return q if q[0] >= 0 else -q

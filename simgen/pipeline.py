@@ -1,17 +1,12 @@
-"""make(): scenes -> frames -> sensors -> writer, in worker processes, with a progress bar.
+"""One scene: world -> frames -> sensors -> labels -> its part file (``generate_scene``).
 
 Every scene is a pure function of (settings, global seed, scene index): its generator is seeded
 with ``SeedSequence([seed, scene_index])``, so the bytes do not depend on ``--workers`` or on
-which scenes were already done when a run was resumed.
+which scenes were already done when a run was resumed. :mod:`simgen.make` runs the scenes in
+worker processes.
 """
 from __future__ import annotations
 
-import dataclasses
-import json
-import multiprocessing as mp
-import os
-import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,38 +16,16 @@ from . import geometry as geo
 from . import labels
 from . import rig
 from . import writer as W
-from .config import ConfigError, SceneConfig
+from .config import SceneConfig
 from .layout import Grid
 from .lidar import LidarScanner
 from .occluders import add_occluders
 from .scene import SWEEPS_PER_KEYFRAME, keyframe_times, sample_world, sweep_end_times
+from .settings import MakeSettings, scene_rng
 from .world import CATEGORY, World
 
 ANNOTATION_RANGE = 80.0
 BASE_TIMESTAMP_US = 1_600_000_000_000_000
-
-
-@dataclass(frozen=True)
-class MakeSettings:
-    """Everything that determines the bytes of a dataset."""
-    cfg: SceneConfig
-    n_scenes: int
-    seed: int
-    samples_per_scene: int
-    version: str
-    val_fraction: float = 0.2
-    gl: str | None = None
-
-    def fingerprint(self) -> dict:
-        d = dataclasses.asdict(self.cfg)
-        d.pop("source")
-        return {"cfg": d, "seed": self.seed, "samples_per_scene": self.samples_per_scene,
-                "version": self.version, "val_fraction": self.val_fraction}
-
-
-def scene_rng(seed: int, idx: int, stream: int) -> np.random.Generator:
-    """Independent generators per (seed, scene, stream): 0 = world, 1 = sensors."""
-    return np.random.default_rng(np.random.SeedSequence([seed, idx, stream]))
 
 
 def degrade_sweep(sweep, cfg: SceneConfig, rings: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -289,106 +262,3 @@ def _key_frame(s, idx: int, world: World, renderer, cams, calib, rec, add_sample
         ann["num_lidar_pts"] = c
         instance_anns.setdefault(i, []).append(ann)
     rec["sample_annotation"].extend(anns)
-
-
-def _worker_init(gl):
-    # llvmpipe keeps its default thread count in every worker: measured, 2 workers with 2 render
-    # threads each finish sooner here than with 1 each (33.8 s against 36.7 s, 4 scenes).
-    if gl:
-        os.environ["PYOPENGL_PLATFORM"] = gl
-
-
-def _task(args):
-    s, dataroot, idx, threads = args
-    return idx, generate_scene(s, dataroot, idx, threads)
-
-
-def check_resume(s: MakeSettings, dataroot: Path) -> list[int]:
-    """Scenes still to do. Refuses a dataroot that holds parts made with other settings."""
-    settings_file = dataroot / W.PARTS_DIR / "settings.json"
-    fp = json.loads(W.dump_json(s.fingerprint()))
-    if settings_file.exists():
-        try:
-            old = json.loads(settings_file.read_text())
-        except json.JSONDecodeError:
-            old = None
-        if old is not None and {k: v for k, v in old.items() if k != "n_scenes"} != fp:
-            old_flat, new_flat = _flatten(old), _flatten(fp)
-            differ = sorted(k for k in old_flat.keys() | new_flat.keys()
-                            if k != "n_scenes" and old_flat.get(k) != new_flat.get(k))
-            raise ConfigError(f"{dataroot}: holds a dataset made with other settings (differing: "
-                              f"{', '.join(differ[:6])}{', ...' if len(differ) > 6 else ''}); "
-                              f"use another --out or delete it")
-    W.write_atomic(settings_file, W.dump_json(fp))
-    return [i for i in range(s.n_scenes) if not W.part_path(dataroot, i).exists()]
-
-
-def _flatten(d: dict, prefix: str = "") -> dict:
-    """Nested dicts -> {"a.b.c": leaf}."""
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flatten(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
-def write_degradation_record(s: MakeSettings, dataroot: Path) -> None:
-    """``<version>/degradation.json``: every degradation setting, the derived fog extinction and
-    visibility, the dropped rings per scene, and the pairing contract. Written for clean sets
-    too (all off), so that a set always says what it is."""
-    d = s.cfg.degrade
-    rings = {f"scene-{i:04d}": [int(r) for r in D.choose_rings(d.beam_drop, scene_rng(s.seed, i, 2))]
-             for i in range(s.n_scenes)} if d.beam_drop else {}
-    record = {
-        "settings": dataclasses.asdict(d),
-        "fog_alpha_per_m": d.alpha,
-        "fog_visibility_m": D.visibility_of(d.alpha) if d.alpha > 0 else None,
-        "failed_sensors": list(d.dropped),
-        "dropped_rings": rings,
-        "preset": s.cfg.name,
-        "seed": s.seed,
-        "labels": ("clean world: sample_annotation, instance, sample and ego_pose equal those of the "
-                   "undegraded run with the same preset, seed and scene count"
-                   if d.occlusion == "none" else
-                   "occluders are part of the world: the same objects, tracks and poses as the clean run, but "
-                   "sample_annotation visibility and num_lidar_pts reflect the occluders"),
-    }
-    W.write_atomic(dataroot / s.version / "degradation.json", W.dump_json(record))
-
-
-def make(s: MakeSettings, dataroot: Path, workers: int, progress: bool = True) -> dict:
-    """Generate (or finish) a dataset. Returns a summary with timings and table sizes."""
-    from tqdm import tqdm
-    dataroot = Path(dataroot)
-    todo = check_resume(s, dataroot)
-    start = time.perf_counter()
-    done_samples = 0
-    bar = tqdm(total=s.n_scenes, initial=s.n_scenes - len(todo), unit="scene", disable=not progress,
-               desc="simgen make", dynamic_ncols=True)
-    n_proc = max(1, min(workers, len(todo)))
-    # The cores left to each worker process cast its lidar rays in parallel.
-    threads = max(1, len(os.sched_getaffinity(0)) // n_proc)
-    tasks = [(s, dataroot, i, threads) for i in todo]
-    if n_proc == 1:
-        results = map(_task, tasks)
-        pool = None
-    else:
-        ctx = mp.get_context("spawn")
-        pool = ctx.Pool(n_proc, initializer=_worker_init, initargs=(s.gl,))
-        results = pool.imap_unordered(_task, tasks)
-    try:
-        for _idx, n in results:
-            done_samples += n
-            bar.update(1)
-            bar.set_postfix(samples_per_s=f"{done_samples / (time.perf_counter() - start):.2f}")
-    finally:
-        if pool is not None:
-            pool.close()
-            pool.join()
-        bar.close()
-    counts = W.merge(dataroot, s.version, s.n_scenes, s.val_fraction)
-    write_degradation_record(s, dataroot)
-    return {"scenes": s.n_scenes, "generated_scenes": len(todo), "samples": counts["sample"],
-            "seconds": time.perf_counter() - start, "tables": counts}

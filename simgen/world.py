@@ -7,11 +7,14 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 
 from . import geometry as geo
+
+if TYPE_CHECKING:          # only named in annotations; building a world imports it anyway
+    import trimesh
 
 # nuScenes category per simgen class, and the detection-class attribute family.
 CATEGORY = {

@@ -1,0 +1,33 @@
+"""The settings of a `simgen make` run and the per-scene random streams (light: no rendering
+or ray-casting imports, so the process that only coordinates workers stays small)."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import SceneConfig
+
+
+@dataclass(frozen=True)
+class MakeSettings:
+    """Everything that determines the bytes of a dataset."""
+    cfg: SceneConfig
+    n_scenes: int
+    seed: int
+    samples_per_scene: int
+    version: str
+    val_fraction: float = 0.2
+    gl: str | None = None
+
+    def fingerprint(self) -> dict:
+        d = dataclasses.asdict(self.cfg)
+        d.pop("source")
+        return {"cfg": d, "seed": self.seed, "samples_per_scene": self.samples_per_scene,
+                "version": self.version, "val_fraction": self.val_fraction}
+
+
+def scene_rng(seed: int, idx: int, stream: int) -> np.random.Generator:
+    """Independent generators per (seed, scene, stream): 0 = world, 1 = sensors."""
+    return np.random.default_rng(np.random.SeedSequence([seed, idx, stream]))
