@@ -19,6 +19,7 @@ import numpy as np
 import trimesh
 
 from . import geometry as geo
+from . import lidar_kernels as K
 from .config import LidarConfig
 from .rig import T_ego_from_lidar
 from .world import World
@@ -120,23 +121,12 @@ class RayTarget:
         and |cos| of the incidence angle (the ray against the face normal).
 
         The distance is the exact (float64) ray-plane distance to the triangle the engine reports.
-        With ``tfar`` (m,), a hit farther than it counts as a miss. The per-face arrays are read
-        for every ray (a miss reads face 0) and the misses masked afterwards: cheaper than
-        compacting the rays first, since most rays hit.
+        With ``tfar`` (m,), a hit farther than it counts as a miss.
         """
         tri = self.first_triangles(origins, dirs, tfar)
-        if len(tri) == 0:
-            return np.zeros(0), tri, np.zeros(0)
-        face = np.maximum(tri, 0)
-        n = np.take(self.normals, face, axis=0)
-        cos = np.einsum("md,md->m", dirs, n)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            dist = (np.take(self.plane, face) - np.einsum("md,md->m", origins, n)) / cos
-        miss = tri < 0
-        if tfar is not None:
-            miss |= dist > tfar
-        dist[miss], tri[miss], cos[miss] = np.inf, -1, 0.0
-        return dist, tri, np.abs(cos)
+        dist, cos = K.plane_hits(tri, origins, dirs, self.normals, self.plane,
+                                 np.zeros(0) if tfar is None else tfar)
+        return dist, tri, cos
 
 
 class ActorMeshes:
@@ -189,8 +179,6 @@ class LidarScanner:
         R = self.T_ego_from_lidar[:3, :3]
         Rz = geo.pose_2d(0.0, 0.0, np.arctan2(R[1, 0], R[0, 0]))[:3, :3]
         self.dir_ego = d @ (R @ Rz.T).T
-        # The same, column by column, each component contiguous: (n_az, 32) x, y, z.
-        self._dir_ego_xyz = [np.ascontiguousarray(self.dir_ego[:, i].reshape(self.n_az, N_BEAMS)) for i in range(3)]
         moving = world.speed.max(axis=1) > 0
         annotated = np.array([a.annotate for a in world.actors])
         self.static_idx = np.nonzero(~moving & annotated)[0]
@@ -222,21 +210,11 @@ class LidarScanner:
         origin = np.stack([x + c * p[0] - s * p[1], y + s * p[0] + c * p[1], np.full_like(x, p[2])], 1)
         return t_col, origin, yaw
 
-    def _rotate_pattern(self, yaw: np.ndarray) -> np.ndarray:
-        """The pattern's ego-frame directions turned by a yaw per column (n_az,) -> (m, 3)."""
-        c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-        dx, dy, dz = self._dir_ego_xyz
-        out = np.empty((self.n_az, N_BEAMS, 3))
-        out[..., 0] = c * dx - s * dy
-        out[..., 1] = s * dx + c * dy
-        out[..., 2] = dz
-        return out.reshape(-1, 3)
-
     def sweep_rays(self, t_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The rays of the sweep ending at ``t_end``: firing times (m,), and origins and unit
         directions (m, 3) in the global frame."""
-        t_col, origin, yaw = self._column_poses(t_end)
-        return np.repeat(t_col, N_BEAMS), np.repeat(origin, N_BEAMS, axis=0), self._rotate_pattern(yaw)
+        t_col, origin_col, yaw = self._column_poses(t_end)
+        return (np.repeat(t_col, N_BEAMS),) + K.sweep_rays(origin_col, yaw, self.dir_ego, N_BEAMS)
 
     def _map(self, fn, n: int) -> list:
         """``fn(slice)`` over contiguous chunks of ``range(n)``, in threads; results in order."""
@@ -284,20 +262,12 @@ class LidarScanner:
             return
         owner = near[owner]
         c_box, s_box = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+        centre = np.ascontiguousarray(boxes[:, :3])
 
         def hits(chunk):
-            r, j = rays[chunk], owner[chunk]
-            # Into each actor's box frame (rotation about z by -yaw), then to its atlas copy.
-            c, s = c_box[j], s_box[j]
-            o = np.take(origin, r, axis=0) - np.take(boxes[:, :3], j, axis=0)
-            d = np.take(dirs, r, axis=0)
-            o_local, d_local = np.empty_like(o), np.empty_like(d)
-            for src, dst in ((o, o_local), (d, d_local)):
-                dst[:, 0] = c * src[:, 0] + s * src[:, 1]
-                dst[:, 1] = c * src[:, 1] - s * src[:, 0]
-                dst[:, 2] = src[:, 2]
-            o_local += np.take(self.atlas_offset, j, axis=0)
-            return self.atlas.first_hits(o_local, d_local, tfar=dist[r])
+            o_local, d_local = K.into_box_frames(rays[chunk], owner[chunk], origin, dirs, centre, c_box, s_box,
+                                                 self.atlas_offset)
+            return self.atlas.first_hits(o_local, d_local, tfar=dist[rays[chunk]])
 
         d_hit, tri, cos = _join(self._map(hits, len(rays)))
         ok = (tri >= 0) & (self.atlas_owner[np.maximum(tri, 0)] == owner) & (d_hit < dist[rays])
@@ -354,7 +324,7 @@ class LidarScanner:
         """Cast one sweep ending at ``t_end`` (s). ``rng`` draws the range noise."""
         cfg = self.cfg
         t_col, origin_col, yaw = self._column_poses(t_end)
-        origin, dirs = np.repeat(origin_col, N_BEAMS, axis=0), self._rotate_pattern(yaw)
+        origin, dirs = K.sweep_rays(origin_col, yaw, self.dir_ego, N_BEAMS)
         dist, tri, cos_inc = _join(self._map(lambda c: self.static.first_hits(origin[c], dirs[c]), len(dirs)))
         face = np.maximum(tri, 0)             # a miss reads face 0; its infinite distance drops it
         rho = np.take(self.static.reflectivity, face)
@@ -366,24 +336,13 @@ class LidarScanner:
         noise = cfg.range_noise_sigma * rng.standard_normal(len(dist))
         # Into the lidar frame at t_end: p = R (origin - t) + (R dir) meas, R = R_lidar_from_global;
         # the first term once per column.
-        R_lidar_from_global = T_lidar[:3, :3].T
+        R_lidar_from_global = np.ascontiguousarray(T_lidar[:3, :3].T)
         origin_lidar = (origin_col - T_lidar[:3, 3]) @ R_lidar_from_global.T
 
         def points(chunk):
-            meas = dist[chunk] + noise[chunk]
-            with np.errstate(invalid="ignore", divide="ignore"):
-                power = rho[chunk] * cos_inc[chunk] / meas ** 2
-            ok = np.flatnonzero(np.isfinite(meas) & (meas >= cfg.min_range) & (meas <= cfg.max_range)
-                                & (power >= cfg.min_return))
-            keep = chunk.start + ok
-            col = keep // N_BEAMS
-            meas, power = meas[ok], power[ok]
-            dir_lidar = np.take(dirs, keep, axis=0) @ R_lidar_from_global.T
-            pts = np.empty((len(keep), 5), np.float32)
-            pts[:, :3] = np.take(origin_lidar, col, axis=0) + dir_lidar * meas[:, None]
-            pts[:, 3] = np.round(255.0 * np.clip(power * cfg.intensity_ref_range ** 2, 0.0, 1.0))
-            pts[:, 4] = self.ring[keep]
-            return pts, t_col[col], ids[keep], rho[keep], cos_inc[keep], meas, dir_lidar
+            return K.returns(chunk.start, dist[chunk], noise[chunk], rho[chunk], cos_inc[chunk], ids[chunk], dirs,
+                             self.ring, t_col, origin_lidar, R_lidar_from_global, cfg.min_range, cfg.max_range,
+                             cfg.min_return, cfg.intensity_ref_range, N_BEAMS)
 
         return Sweep(*_join(self._map(points, len(dist))))
 
