@@ -9,6 +9,7 @@ compiled once per checkout, then loaded), that reads the inputs once and writes 
 once. ``nogil=True``, so the scanner's threads run them in parallel on ray chunks.
 
 Plain IEEE arithmetic in a fixed order (no ``fastmath``): the same inputs give the same bytes.
+``error_model="numpy"``: a division by zero gives inf or nan, as in numpy, instead of raising.
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import numba
 import numpy as np
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def plane_hits(tri, origins, dirs, normals, plane, tfar):
     """Exact hit distance and |cos| of incidence on each ray's reported triangle.
 
@@ -46,7 +47,7 @@ def plane_hits(tri, origins, dirs, normals, plane, tfar):
     return dist, cos
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def into_box_frames(rays, owner, origin, dirs, centre, cos_yaw, sin_yaw, offset):
     """Rays moved into their actor's box frame (rotation about z by -yaw), then to its atlas copy.
 
@@ -71,7 +72,7 @@ def into_box_frames(rays, owner, origin, dirs, centre, cos_yaw, sin_yaw, offset)
     return o_local, d_local
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def sweep_rays(origin_col, yaw, dir_ego, n_beams):
     """Per-ray origins and directions (m, 3), global frame, from per-column sensor origins
     (n_az, 3) and ego yaws (n_az,) and the pattern's ego-frame directions (m, 3)."""
@@ -90,7 +91,7 @@ def sweep_rays(origin_col, yaw, dir_ego, n_beams):
     return origin, dirs
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def returns(first, dist, noise, rho, cos_inc, ids, dirs, ring, t_col, origin_lidar, R_lidar_from_global,
             min_range, max_range, min_return, ref_range, n_beams):
     """The returns a sweep's rays give: measured range, detection threshold, sensor frame.

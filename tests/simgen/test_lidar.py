@@ -356,6 +356,23 @@ def test_embree_matches_brute_force(tiny_world):
     assert np.all(cos[~both] == 0)
 
 
+def test_plane_hits_on_a_grazing_ray_does_not_raise():
+    """A ray along its triangle's plane (cos 0) gets a non-finite distance, as numpy would give,
+    not a ZeroDivisionError from the compiled kernel; tfar turns a far hit into a miss."""
+    from simgen import lidar_kernels as K
+    normals, plane = np.array([[0.0, 0.0, 1.0]]), np.array([0.0])
+    tri = np.array([0, 0, -1])
+    origins = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    dirs = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    dist, cos = K.plane_hits(tri.copy(), origins, dirs, normals, plane, np.zeros(0))
+    assert dist[0] == 5.0 and cos[0] == 1.0
+    assert not np.isfinite(dist[1]) and cos[1] == 0.0
+    assert dist[2] == np.inf and cos[2] == 0.0
+    far = tri.copy()
+    dist, cos = K.plane_hits(far, origins, dirs, normals, plane, np.array([4.0, 9.0, 9.0]))
+    assert far[0] == -1 and dist[0] == np.inf and cos[0] == 0.0
+
+
 def test_threaded_sweep_gives_the_same_bytes():
     """A sweep cast in chunks over threads equals the sweep cast in one piece, field by field."""
     from simgen.lidar import MIN_RAYS_PER_THREAD
