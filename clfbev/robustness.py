@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
+from clfbev import atomic
 from clfbev.checkpoint import load_model
 from clfbev.corruptions import Corruption
 from clfbev.data import DataError, NuScenesDetection
-from clfbev import atomic
 from clfbev.evaluate import evaluate, predict_split, write_results
 
 PAIRED_TABLES = ("sample_annotation", "instance", "sample", "ego_pose")

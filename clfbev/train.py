@@ -280,8 +280,8 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
     if is_main:
         run.mkdir(parents=True, exist_ok=True)
         atomic.write_json(run / "run.json", {"config": cfg.to_dict(), "variant": variant, "train": asdict(tc),
-                                        "world_size": world, "code_version": version,
-                                       "argv": sys.argv, "resumed_at_step": step})
+                                             "world_size": world, "code_version": version,
+                                             "argv": sys.argv, "resumed_at_step": step})
         log = ScalarLog(run, step)
 
     def save(path: Path) -> None:

@@ -110,9 +110,9 @@ class Renderer:
     What is drawn per camera: the static world in square tiles of ``STATIC_TILE`` metres and the
     moving actors, each culled by its bounding sphere against the view frustum, drawn near to
     far. (A modest gain, about 5% per 1600x900 image: llvmpipe's time goes mostly to filling
-    pixels.) pyrender's own draw list (every mesh node, sorted by distance on every frame, then the hidden
-    ones skipped) is replaced on this instance by the culled list: opaque, depth-tested geometry
-    needs no sorting.
+    pixels.) pyrender's own draw list (every mesh node, sorted by distance on every frame, then
+    the hidden ones skipped) is replaced on this instance by the culled list: opaque,
+    depth-tested geometry needs no sorting.
     """
 
     def __init__(self, cfg: CameraConfig, platform: str | None = None):
@@ -176,8 +176,9 @@ class Renderer:
         tris, norms, albedo, owner = (np.concatenate(x) for x in (tris, norms, albedo, owner))
         self.static_nodes, centre, radius = [], [], []
         for f in static_tiles(tris, STATIC_TILE):
-            self.static_nodes.append(add(tris[f], norms[f], albedo[f], sun, owner[f]))
-            lo, hi = tris[f].reshape(-1, 3).min(axis=0), tris[f].reshape(-1, 3).max(axis=0)
+            tile = tris[f]
+            self.static_nodes.append(add(tile, norms[f], albedo[f], sun, owner[f]))
+            lo, hi = tile.reshape(-1, 3).min(axis=0), tile.reshape(-1, 3).max(axis=0)
             centre.append((lo + hi) / 2)
             radius.append(float(np.linalg.norm(hi - lo)) / 2)
         self.static_centre, self.static_radius = np.array(centre).reshape(-1, 3), np.array(radius)

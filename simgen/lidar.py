@@ -165,7 +165,7 @@ class LidarScanner:
     actors for every sweep would cost several times more than the casting itself.
 
     ``threads``: each stage of a sweep (static hits, actor hits, the points) works on contiguous
-    chunks of rays in this many threads; embreex and numpy's array loops release the GIL. The
+    chunks of rays in this many threads; embreex and the compiled kernels release the GIL. The
     rays are independent and the chunks are joined in order, so the bytes do not depend on it.
     """
 

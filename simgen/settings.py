@@ -29,5 +29,6 @@ class MakeSettings:
 
 
 def scene_rng(seed: int, idx: int, stream: int) -> np.random.Generator:
-    """Independent generators per (seed, scene, stream): 0 = world, 1 = sensors."""
+    """Independent generators per (seed, scene, stream): 0 = world, 1 = sensors, 2 = degradation,
+    3 = occluders, 100 + camera index = that camera's lens dirt."""
     return np.random.default_rng(np.random.SeedSequence([seed, idx, stream]))
