@@ -114,7 +114,10 @@ def make(s: MakeSettings, dataroot: Path, workers: int, progress: bool = True) -
             bar.set_postfix(samples_per_s=f"{done_samples / (time.perf_counter() - start):.2f}")
     finally:
         if pool is not None:
-            pool.close()
+            # Every result is in (or the run is being abandoned): the workers hold nothing
+            # unwritten, since a scene's part file is its last, atomic write. Stopping them
+            # spares the wait for their interpreters to finalise (about 0.7 s with 2 workers).
+            pool.terminate()
             pool.join()
         bar.close()
     counts = W.merge(dataroot, s.version, s.n_scenes, s.val_fraction)
