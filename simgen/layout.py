@@ -219,8 +219,10 @@ def build_static(grid: Grid, rng: np.random.Generator) -> tuple[trimesh.Trimesh,
         p.box((x1 - x0, y1 - y0, CURB_HEIGHT), ((x0 + x1) / 2, (y0 + y1) / 2, CURB_HEIGHT / 2), SIDEWALK, 0.3)
         if x1 - x0 > 2 * sw + 1 and y1 - y0 > 2 * sw + 1:
             color = (78, 112, 62) if lawn else (140, 135, 125)
-            p.box((x1 - x0 - 2 * sw, y1 - y0 - 2 * sw, 0.01), ((x0 + x1) / 2, (y0 + y1) / 2, CURB_HEIGHT + 0.005),
-                  color, 0.25)
+            # 5 mm short of the lot edge on every side: the buildings' street faces stand on that
+            # edge, and a slab side in the same plane z-fights with them (a flickering pixel row).
+            p.box((x1 - x0 - 2 * sw - 0.01, y1 - y0 - 2 * sw - 0.01, 0.01),
+                  ((x0 + x1) / 2, (y0 + y1) / 2, CURB_HEIGHT + 0.005), color, 0.25)
     _road_markings(p, grid)
     _buildings(p, grid, rng)
     clutter = _clutter(p, grid, rng)
