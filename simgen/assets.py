@@ -2,7 +2,9 @@
 
 The box frame has its origin at the box centre, x along the length (heading), y to the left and
 z up; every mesh lies inside its (l, w, h) box, so lidar points on it count as inside the box.
-Each face carries a colour (for the cameras) and a reflectivity 0..1 (for the lidar intensity).
+Each face carries a colour (for the cameras), a reflectivity 0..1 (for the lidar intensity) and
+a lidarseg class index (``simgen.lidarseg``; only the static world's are read: actors are
+labelled by their class).
 """
 from __future__ import annotations
 
@@ -47,34 +49,35 @@ class Parts:
     """Accumulates coloured parts (plain vertex/face arrays) and concatenates them into one mesh."""
 
     def __init__(self):
-        self.verts, self.faces, self.colors, self.refl = [], [], [], []
+        self.verts, self.faces, self.colors, self.refl, self.labels = [], [], [], [], []
 
-    def add_arrays(self, verts: np.ndarray, faces: np.ndarray, color, reflectivity: float):
+    def add_arrays(self, verts: np.ndarray, faces: np.ndarray, color, reflectivity: float, label: int = 0):
         self.verts.append(np.asarray(verts, np.float64))
         self.faces.append(np.asarray(faces, np.int64))
         self.colors.append(np.broadcast_to(np.append(np.asarray(color, np.uint8)[:3], 255), (len(faces), 4)))
         self.refl.append(np.full(len(faces), reflectivity, np.float32))
+        self.labels.append(np.full(len(faces), label, np.uint8))
 
-    def add(self, mesh: trimesh.Trimesh, color, reflectivity: float):
-        self.add_arrays(mesh.vertices, mesh.faces, color, reflectivity)
+    def add(self, mesh: trimesh.Trimesh, color, reflectivity: float, label: int = 0):
+        self.add_arrays(mesh.vertices, mesh.faces, color, reflectivity, label)
 
-    def box(self, extents, center, color, refl, yaw=0.0):
+    def box(self, extents, center, color, refl, yaw=0.0, label: int = 0):
         v, f = _template("box")
         v = v * np.asarray(extents, float)
         if yaw:
             c, s = np.cos(yaw), np.sin(yaw)
             v = v @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1.0]])
-        self.add_arrays(v + np.asarray(center, float), f, color, refl)
+        self.add_arrays(v + np.asarray(center, float), f, color, refl, label)
 
-    def cylinder(self, p0, p1, radius, color, refl, sections=SECTIONS):
+    def cylinder(self, p0, p1, radius, color, refl, sections=SECTIONS, label: int = 0):
         p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
         v, f = _template("cylinder", sections)
         v = v * np.array([radius, radius, np.linalg.norm(p1 - p0)])
-        self.add_arrays(v @ _rotation_z_to(p1 - p0).T + (p0 + p1) / 2, f, color, refl)
+        self.add_arrays(v @ _rotation_z_to(p1 - p0).T + (p0 + p1) / 2, f, color, refl, label)
 
-    def sphere(self, center, radius, color, refl, subdivisions=1):
+    def sphere(self, center, radius, color, refl, subdivisions=1, label: int = 0):
         v, f = _template("sphere", subdivisions=subdivisions)
-        self.add_arrays(v * radius + np.asarray(center, float), f, color, refl)
+        self.add_arrays(v * radius + np.asarray(center, float), f, color, refl, label)
 
     def translate(self, offset):
         self.verts = [v + np.asarray(offset, float) for v in self.verts]
@@ -84,6 +87,7 @@ class Parts:
         self.faces += other.faces
         self.colors += other.colors
         self.refl += other.refl
+        self.labels += other.labels
 
     def build(self) -> trimesh.Trimesh:
         offsets = np.cumsum([0] + [len(v) for v in self.verts[:-1]])
@@ -91,6 +95,7 @@ class Parts:
         mesh = trimesh.Trimesh(np.concatenate(self.verts), faces, process=False)
         mesh.visual.face_colors = np.concatenate(self.colors)
         mesh.metadata["reflectivity"] = np.concatenate(self.refl)
+        mesh.metadata["lidarseg"] = np.concatenate(self.labels)
         return mesh
 
 

@@ -19,6 +19,7 @@ REFERENCES = {
                  ("last_annotation_token", "sample_annotation")],
     "scene": [("log_token", "log"), ("first_sample_token", "sample"), ("last_sample_token", "sample")],
     "calibrated_sensor": [("sensor_token", "sensor")],
+    "lidarseg": [("sample_data_token", "sample_data")],
 }
 
 
@@ -27,8 +28,11 @@ def load_tables(dataroot: Path, version: str) -> dict[str, list[dict]]:
     if not folder.is_dir():
         raise ConfigError(f"{dataroot}: no {version}/ folder with nuScenes tables")
     tables = {}
-    for name in TABLES:
+    optional = ("lidarseg",)          # nuScenes-lidarseg: absent when no key frame has points
+    for name in TABLES + optional:
         path = folder / f"{name}.json"
+        if name in optional and not path.is_file():
+            continue
         if not path.is_file():
             raise ConfigError(f"{path}: missing table")
         try:
@@ -53,7 +57,7 @@ def find_problems(dataroot: Path, tables: dict[str, list[dict]]) -> list[str]:
             problems.append(f"{name}: duplicate token {dup[0]}")
         tokens[name] = set(toks)
     for name, refs in REFERENCES.items():
-        for row in tables[name]:
+        for row in tables.get(name, []):
             for field, target in refs:
                 value = row.get(field)
                 if value != "" and value not in tokens[target]:
@@ -84,6 +88,21 @@ def find_problems(dataroot: Path, tables: dict[str, list[dict]]) -> list[str]:
             magic = b"\xff\xd8\xff" if fmt == "jpg" else b"\x89PNG"
             if not head.startswith(magic):
                 problems.append(f"{fname}: not a {fmt} file")
+    return problems + _lidarseg_problems(dataroot, tables)
+
+
+def _lidarseg_problems(dataroot: Path, tables: dict[str, list[dict]]) -> list[str]:
+    """Each lidarseg label file: present, and one uint8 label per point of its sweep."""
+    problems = []
+    sweep_file = {r["token"]: r["filename"] for r in tables["sample_data"]}
+    for rec in tables.get("lidarseg", []):
+        path, pcd = Path(dataroot) / rec["filename"], sweep_file.get(rec["sample_data_token"])
+        if not path.is_file():
+            problems.append(f"{rec['filename']}: missing file")
+        elif pcd is not None and (Path(dataroot) / pcd).is_file():
+            n_points = (Path(dataroot) / pcd).stat().st_size // 20
+            if path.stat().st_size != n_points:
+                problems.append(f"{rec['filename']}: {path.stat().st_size} labels for the {n_points} points of {pcd}")
     return problems
 
 

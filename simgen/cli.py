@@ -63,8 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="simgen",
         description="Procedural urban scenes rendered into a nuScenes-format dataset: six cameras "
-                    "(pyrender), a 32-beam HDL-32E lidar (Embree), exact labels, and the 13 tables "
-                    "that nuscenes-devkit loads and evaluates.")
+                    "(pyrender), a 32-beam HDL-32E lidar (Embree), exact labels (boxes, and a "
+                    "nuScenes-lidarseg class per key-frame lidar point), and the 13 tables that "
+                    "nuscenes-devkit loads and evaluates.")
     sub = ap.add_subparsers(dest="command", required=True)
 
     mk = sub.add_parser("make", help="generate a dataset (resumes an interrupted run in the same --out)",

@@ -20,9 +20,10 @@ import trimesh
 
 from . import geometry as geo
 from . import lidar_kernels as K
+from . import lidarseg as LS
 from .config import LidarConfig
 from .rig import T_ego_from_lidar
-from .world import World
+from .world import CATEGORY, World
 
 N_BEAMS = 32
 ELEVATIONS_DEG = np.linspace(-30.67, 10.67, N_BEAMS)   # 1.33 deg apart; ring 0 is the lowest
@@ -47,6 +48,7 @@ class Sweep:
     time : (n,) float64 firing time (s, scene clock).  actor_id : (n,) int32, 0 = static world.
     rho : (n,) surface reflectivity.  cos_inc : (n,) cosine of the incidence angle.
     range : (n,) measured range (m).  dir_lidar : (n, 3) unit ray directions, sensor frame at t_end.
+    label : (n,) uint8 nuScenes-lidarseg class index (:mod:`simgen.lidarseg`).
     """
     points_lidar: np.ndarray
     time: np.ndarray
@@ -55,6 +57,7 @@ class Sweep:
     cos_inc: np.ndarray
     range: np.ndarray
     dir_lidar: np.ndarray
+    label: np.ndarray
 
 
 def ray_pattern(cfg: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -193,6 +196,12 @@ class LidarScanner:
         self.static = RayTarget(trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False),
                                 np.concatenate([sm.metadata["reflectivity"], statics.refl]))
         self.static_ids = np.concatenate([np.zeros(len(sm.faces), np.int32), statics.ids[statics.face_owner]])
+        # lidarseg class per static face (the merged actors' faces are overridden by their id's
+        # class, below) and per actor id.
+        self.static_label = np.concatenate([sm.metadata["lidarseg"], np.zeros(len(statics.faces), np.uint8)])
+        self.label_of_id = np.zeros(1 + max(a.id for a in world.actors), np.uint8)
+        for a in world.actors:
+            self.label_of_id[a.id] = LS.INDEX[CATEGORY[a.cls]]
         self.sensor_height = float(self.T_ego_from_lidar[2, 3])
         self.ring_elevation = np.deg2rad(ELEVATIONS_DEG)
         self.mover_ids = np.array([world.actors[i].id for i in self.moving_idx], np.int32)
@@ -334,15 +343,16 @@ class LidarScanner:
         ego_yaw = float(np.arctan2(T_end[1, 0], T_end[0, 0]))
         self._cast_movers(t_end, origin, dirs, T_lidar[:2, 3], ego_yaw, dist, rho, ids, cos_inc)
         noise = cfg.range_noise_sigma * rng.standard_normal(len(dist))
+        label = np.where(ids > 0, np.take(self.label_of_id, ids), np.take(self.static_label, face))
         # Into the lidar frame at t_end: p = R (origin - t) + (R dir) meas, R = R_lidar_from_global;
         # the first term once per column.
         R_lidar_from_global = np.ascontiguousarray(T_lidar[:3, :3].T)
         origin_lidar = (origin_col - T_lidar[:3, 3]) @ R_lidar_from_global.T
 
         def points(chunk):
-            return K.returns(chunk.start, dist[chunk], noise[chunk], rho[chunk], cos_inc[chunk], ids[chunk], dirs,
-                             self.ring, t_col, origin_lidar, R_lidar_from_global, cfg.min_range, cfg.max_range,
-                             cfg.min_return, cfg.intensity_ref_range, N_BEAMS)
+            return K.returns(chunk.start, dist[chunk], noise[chunk], rho[chunk], cos_inc[chunk], ids[chunk],
+                             label[chunk], dirs, self.ring, t_col, origin_lidar, R_lidar_from_global, cfg.min_range,
+                             cfg.max_range, cfg.min_return, cfg.intensity_ref_range, N_BEAMS)
 
         return Sweep(*_join(self._map(points, len(dist))))
 

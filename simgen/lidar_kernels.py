@@ -92,18 +92,19 @@ def sweep_rays(origin_col, yaw, dir_ego, n_beams):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def returns(first, dist, noise, rho, cos_inc, ids, dirs, ring, t_col, origin_lidar, R_lidar_from_global,
+def returns(first, dist, noise, rho, cos_inc, ids, labels, dirs, ring, t_col, origin_lidar, R_lidar_from_global,
             min_range, max_range, min_return, ref_range, n_beams):
     """The returns a sweep's rays give: measured range, detection threshold, sensor frame.
 
     Rays ``first .. first + len(dist)`` of the sweep; ``dist``, ``noise``, ``rho``, ``cos_inc``,
-    ``ids`` are their slices, ``dirs``, ``ring`` the whole sweep's. A ray returns when its
+    ``ids``, ``labels`` are their slices, ``dirs``, ``ring`` the whole sweep's. A ray returns when its
     measured range (``dist + noise``) lies in [min_range, max_range] and its power
     ``rho cos / range^2`` reaches ``min_return``. origin_lidar : (n_az, 3) each column's origin
     in the lidar frame at the sweep's end; the point is ``origin_lidar[col] + (R dir) range``.
 
     Returns, per return: (k, 5) float32 points (x, y, z, intensity 0..255, ring), firing time,
-    actor id, rho, |cos|, measured range (k,) and (k, 3) unit directions in the lidar frame.
+    actor id, rho, |cos|, measured range (k,), (k, 3) unit directions in the lidar frame and the
+    lidarseg label (k,).
     """
     n = dist.shape[0]
     keep = np.empty(n, np.int64)
@@ -125,6 +126,7 @@ def returns(first, dist, noise, rho, cos_inc, ids, dirs, ring, t_col, origin_lid
     ids_k = np.empty(k, ids.dtype)
     rho_k = np.empty(k, rho.dtype)
     cos_k = np.empty(k)
+    labels_k = np.empty(k, labels.dtype)
     ref2 = ref_range ** 2
     for j in range(k):
         i = keep[j]
@@ -140,4 +142,5 @@ def returns(first, dist, noise, rho, cos_inc, ids, dirs, ring, t_col, origin_lid
         ids_k[j] = ids[i - first]
         rho_k[j] = rho[i - first]
         cos_k[j] = cos_inc[i - first]
-    return pts, t, ids_k, rho_k, cos_k, meas[:k], dir_lidar
+        labels_k[j] = labels[i - first]
+    return pts, t, ids_k, rho_k, cos_k, meas[:k], dir_lidar, labels_k

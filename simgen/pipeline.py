@@ -14,6 +14,7 @@ import numpy as np
 from . import degrade as D
 from . import geometry as geo
 from . import labels
+from . import lidarseg as LS
 from . import rig
 from . import writer as W
 from .config import SceneConfig
@@ -28,24 +29,29 @@ ANNOTATION_RANGE = 80.0
 BASE_TIMESTAMP_US = 1_600_000_000_000_000
 
 
-def degrade_sweep(sweep, cfg: SceneConfig, rings: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """The points (n, 5) a degraded LIDAR_TOP delivers for a clean ``sweep``: fog, then the
-    dropped rings and the field of view; no points at all if the lidar failed. ``rng`` is the
-    scene's degradation stream (the clean sensor stream is left untouched)."""
+def degrade_sweep(sweep, cfg: SceneConfig, rings: np.ndarray,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The points (n, 5) a degraded LIDAR_TOP delivers for a clean ``sweep``, and their lidarseg
+    labels (n,) uint8: fog (its returns are labelled noise), then the dropped rings and the field
+    of view; no points at all if the lidar failed. ``rng`` is the scene's degradation stream (the
+    clean sensor stream is left untouched)."""
     d = cfg.degrade
     if rig.LIDAR in d.dropped:
-        return np.zeros((0, 5), np.float32)
-    pts = sweep.points_lidar
+        return np.zeros((0, 5), np.float32), np.zeros(0, np.uint8)
+    # The label rides along as a sixth column: every step below keeps or drops whole rows and
+    # leaves the columns after the ring alone.
+    pts = np.concatenate([sweep.points_lidar, sweep.label[:, None].astype(np.float32)], axis=1)
     if d.alpha > 0:
-        pts, _ = D.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, d.alpha,
-                             cfg.lidar.min_return, cfg.lidar.intensity_ref_range, rng,
-                             background_gain=cfg.lidar.fog_background_gain)
+        pts, is_fog = D.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, d.alpha,
+                                  cfg.lidar.min_return, cfg.lidar.intensity_ref_range, rng,
+                                  background_gain=cfg.lidar.fog_background_gain)
+        pts[is_fog, 5] = LS.NOISE
     if len(rings):
         pts = D.drop_rings(pts, rings)
     if d.lidar_fov < 360:
         forward_lidar = rig.T_ego_from_lidar()[:3, :3].T @ np.array([1.0, 0.0, 0.0])
         pts = D.keep_sector(pts, forward_lidar, d.lidar_fov)
-    return pts
+    return np.ascontiguousarray(pts[:, :5]), pts[:, 5].astype(np.uint8)
 
 
 def degrade_image(rgb: np.ndarray, depth: np.ndarray, cam: rig.Camera, cfg: SceneConfig, s, idx: int,
@@ -192,10 +198,16 @@ def _generate_scene(s: MakeSettings, dataroot: Path, idx: int, threads: int) -> 
         sweep = scanner.scan(float(t_end), rng_sensor)
         sd_tok = tok("sd", rig.LIDAR, j)
         fname = f"{'samples' if is_key else 'sweeps'}/{rig.LIDAR}/{log_name}__{rig.LIDAR}__{us(t_end)}.pcd.bin"
-        points = degrade_sweep(sweep, cfg, dropped_rings, rng_degrade) if cfg.degrade.active else sweep.points_lidar
+        points, point_labels = (degrade_sweep(sweep, cfg, dropped_rings, rng_degrade) if cfg.degrade.active
+                                else (sweep.points_lidar, sweep.label))
         W.write_pointcloud(dataroot / fname, points)
         pose = add_sample_data(rig.LIDAR, sd_tok, float(t_end), k_sample, is_key, fname, 0, 0, "pcd")
         lidar_chain.append(rec["sample_data"][-1])
+        if is_key and len(points):
+            # nuScenes-lidarseg labels the key frames' points (a failed lidar has none to label).
+            seg_file = f"lidarseg/{s.version}/{sd_tok}_lidarseg.bin"
+            W.write_atomic(dataroot / seg_file, point_labels.tobytes())
+            rec["lidarseg"].append({"token": sd_tok, "sample_data_token": sd_tok, "filename": seg_file})
         if is_key:
             _key_frame(s, idx, world, renderer, cams, calib, rec, add_sample_data, cam_chains, instance_anns, sweep,
                        pose, float(t_end), k_sample, sample_toks[k_sample], dataroot, log_name, tok, us)

@@ -2,8 +2,9 @@
 
 Each scene is written on its own: sensor files first, then its table records as one part file
 ``<dataroot>/.parts/scene-NNNN.json``. Only when every part exists are the 13 tables (and
-``splits.json``) merged into ``<dataroot>/<version>/``, each written to a temporary name and
-renamed. So a half-written scene is never referenced, and a rerun finishes what is missing.
+``splits.json``, and nuScenes-lidarseg's ``lidarseg.json``) merged into ``<dataroot>/<version>/``,
+each written to a temporary name and renamed. So a half-written scene is never referenced, and a
+rerun finishes what is missing.
 """
 from __future__ import annotations
 
@@ -15,13 +16,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from . import lidarseg as LS
 from .rig import CAMERAS, LIDAR
 from .world import CATEGORY
 
 TABLES = ("attribute", "calibrated_sensor", "category", "ego_pose", "instance", "log", "map", "sample",
           "sample_annotation", "sample_data", "scene", "sensor", "visibility")
 PER_SCENE_TABLES = ("calibrated_sensor", "ego_pose", "instance", "log", "map", "sample",
-                    "sample_annotation", "sample_data", "scene")
+                    "sample_annotation", "sample_data", "scene", "lidarseg")
 ATTRIBUTES = ("vehicle.moving", "vehicle.parked", "vehicle.stopped", "cycle.with_rider",
               "cycle.without_rider", "pedestrian.moving", "pedestrian.standing", "pedestrian.sitting_lying_down")
 VISIBILITY_LEVELS = {"1": "v0-40", "2": "v40-60", "3": "v60-80", "4": "v80-100"}
@@ -67,10 +69,18 @@ def static_tables() -> dict[str, list[dict]]:
     """The tables shared by all scenes: sensors, categories, attributes, visibility levels."""
     sensors = [{"token": token("sensor", ch), "channel": ch, "modality": "camera"} for ch in CAMERAS]
     sensors.append({"token": token("sensor", LIDAR), "channel": LIDAR, "modality": "lidar"})
+    describe = {name: f"simgen {cls}" for cls, name in CATEGORY.items()}
+    describe.update({LS.NAMES[LS.ROAD]: "simgen static world: asphalt, lane markings, crosswalks",
+                     LS.NAMES[LS.SIDEWALK]: "simgen static world: sidewalks and curbs",
+                     LS.NAMES[LS.TERRAIN]: "simgen static world: lawns", LS.NAMES[LS.PLAZA]: "simgen static world: paved lots",
+                     LS.NAMES[LS.MANMADE]: "simgen static world: buildings, poles, bins",
+                     LS.NAMES[LS.VEGETATION]: "simgen static world: trees, hedges",
+                     LS.NAMES[LS.NOISE]: "simgen: fog returns"})
     return {
         "sensor": sensors,
-        "category": [{"token": token("category", name), "name": name, "description": f"simgen {cls}"}
-                     for cls, name in CATEGORY.items()],
+        # All of nuScenes-lidarseg's classes with their indices (the devkit needs 0..31 without gaps).
+        "category": [{"token": token("category", name), "name": name, "description": describe.get(name, "not generated"),
+                      "index": i} for i, name in enumerate(LS.NAMES)],
         "attribute": [{"token": token("attribute", name), "name": name, "description": name} for name in ATTRIBUTES],
         "visibility": [{"token": k, "level": v, "description": f"visibility of whole object is {v[1:]} %"}
                        for k, v in VISIBILITY_LEVELS.items()],
@@ -97,15 +107,16 @@ def split_scenes(names: list[str], val_fraction: float) -> dict[str, list[str]]:
 
 
 def merge(dataroot: Path, version: str, n_scenes: int, val_fraction: float) -> dict[str, int]:
-    """Merge the scene parts into the 13 tables and splits.json. Returns row counts per table."""
-    tables = {name: [] for name in TABLES}
+    """Merge the scene parts into the 13 tables, splits.json and lidarseg.json (when any key
+    frame has points: the devkit then lists ``lidarseg/<version>/``). Returns row counts per table."""
+    tables = {name: [] for name in (*TABLES, "lidarseg")}
     tables.update(static_tables())
     for i in range(n_scenes):
         part = json.loads(part_path(dataroot, i).read_text())
         for name in PER_SCENE_TABLES:
             tables[name].extend(part[name])
     out = dataroot / version
-    for name in TABLES:
+    for name in TABLES + (("lidarseg",) if tables["lidarseg"] else ()):
         write_atomic(out / f"{name}.json", dump_json(tables[name]))
     names = [s["name"] for s in tables["scene"]]
     write_atomic(out / "splits.json", dump_json(split_scenes(names, val_fraction)))

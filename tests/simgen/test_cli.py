@@ -65,6 +65,10 @@ def test_check_reports_a_truncated_file(tiny_dataset, tmp_path):
     pcd.write_bytes(pcd.read_bytes()[:-7])
     proc = run_simgen("check", copy, check=False)
     assert proc.returncode == 1 and pcd.name in proc.stdout and "truncated" in proc.stdout
+    seg = next((copy / "lidarseg" / "v1.0-sim").glob("*_lidarseg.bin"))
+    seg.write_bytes(seg.read_bytes()[:-3])                 # a label file short of its sweep's points
+    proc = run_simgen("check", copy, check=False)
+    assert proc.returncode == 1 and f"{seg.name}: {seg.stat().st_size} labels for the" in proc.stdout
     (copy / "v1.0-sim" / "sample.json").write_text("[{")
     proc = run_simgen("check", copy, check=False)
     assert proc.returncode == 2 and "sample.json" in proc.stderr and "Traceback" not in proc.stderr

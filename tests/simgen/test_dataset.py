@@ -198,3 +198,46 @@ def test_projected_box_lands_on_rendered_object(tiny_dataset, tiny_nusc):
     vehicles = [r[1] for r in results if r[0] in ("vehicle.car", "vehicle.truck", "vehicle.bus.rigid")]
     assert len(vehicles) >= 5 and min(vehicles) >= 0.7, results
 
+
+
+def test_lidarseg_labels_the_written_points(tiny_nusc, tiny_dataset):
+    """nuScenes-lidarseg through the devkit: one label per key-frame point; the points inside an
+    annotation's box carry its class, except the ground the box stands on; and the ground classes
+    lie at the ground's height in the global frame."""
+    from nuscenes.utils.data_io import load_bin_file
+    from nuscenes.utils.color_map import get_colormap
+    nusc = tiny_nusc
+    assert [c["name"] for c in sorted(nusc.category, key=lambda c: c["index"])] == list(get_colormap())
+    assert len(nusc.lidarseg) == len(nusc.sample)
+    idx = nusc.lidarseg_name2idx_mapping
+    ground = {idx[n] for n in ("flat.driveable_surface", "flat.sidewalk", "flat.terrain", "flat.other")}
+    same = total = 0
+    heights = {}
+    for sample in nusc.sample:
+        sd_token = sample["data"]["LIDAR_TOP"]
+        path, boxes, _ = nusc.get_sample_data(sd_token)
+        pts = LidarPointCloud.from_file(path).points
+        labels = load_bin_file(str(tiny_dataset / nusc.get("lidarseg", sd_token)["filename"]))
+        assert labels.shape == (pts.shape[1],)
+        for box in boxes:
+            inside = points_in_box(box, pts[:3])
+            mine = labels[inside] == idx[box.name]
+            assert set(labels[inside][~mine].tolist()) <= ground, (box.name, np.unique(labels[inside]))
+            same += int(mine.sum())
+            total += int(inside.sum())
+        # The points into the global frame (sensor -> ego -> global, at this sweep).
+        sd = nusc.get("sample_data", sd_token)
+        cs, pose = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"]), nusc.get("ego_pose", sd["ego_pose_token"])
+        z = (Quaternion(pose["rotation"]).rotation_matrix @ (Quaternion(cs["rotation"]).rotation_matrix @ pts[:3]
+             + np.array(cs["translation"])[:, None]))[2] + pose["translation"][2]
+        for name in ("flat.driveable_surface", "flat.sidewalk", "static.manmade"):
+            heights.setdefault(name, []).append(z[labels == idx[name]])
+    assert total > 1000 and same / total > 0.85, (same, total)
+    road, sidewalk, manmade = (np.concatenate(heights[n]) for n in ("flat.driveable_surface", "flat.sidewalk",
+                                                                    "static.manmade"))
+    # Asphalt and markings: z = 0 to +1 cm, plus 2 cm of range noise (3 sigma) on a grazing beam.
+    assert len(road) > 1000 and np.abs(road).max() < 0.2 and np.median(np.abs(road)) < 0.03
+    # Sidewalks: their top at 0.15 m and the curb's face below it.
+    assert len(sidewalk) > 100 and sidewalk.min() > -0.2 and sidewalk.max() < 0.35
+    assert np.median(sidewalk) > 0.1
+    assert len(manmade) > 1000 and np.median(manmade) > 1.0        # buildings and poles stand up

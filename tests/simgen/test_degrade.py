@@ -9,6 +9,7 @@ import pytest
 from conftest import TINY_ARGS, run_simgen
 
 from simgen import degrade as D
+from simgen import lidarseg as LS
 from simgen.config import load_preset, with_degradation
 from simgen.lidar import LidarScanner
 from simgen.pipeline import MakeSettings, build_world, degrade_sweep
@@ -102,7 +103,7 @@ def test_lidar_fog_on_a_scene_monotone_in_severity(clean_sweep):
     far, total, fog_near = [], [], []
     for sev in range(6):
         c = with_degradation(cfg, fog=sev)
-        pts = degrade_sweep(sweep, c, np.zeros(0, int), np.random.default_rng(1))
+        pts, seg = degrade_sweep(sweep, c, np.zeros(0, int), np.random.default_rng(1))
         r = np.linalg.norm(pts[:, :3], axis=1)
         far.append(int((r > 30).sum()))
         total.append(len(pts))
@@ -110,6 +111,8 @@ def test_lidar_fog_on_a_scene_monotone_in_severity(clean_sweep):
                                    D.FOG_ALPHA[sev], cfg.lidar.min_return, cfg.lidar.intensity_ref_range,
                                    np.random.default_rng(1), background_gain=cfg.lidar.fog_background_gain)
         np.testing.assert_array_equal(same, pts)
+        # Fog returns are labelled noise; the hard returns keep their surface's class.
+        assert (seg[is_fog] == LS.NOISE).all() and (seg[~is_fog] != LS.NOISE).all()
         fog_near.append(int((is_fog & (r < 10)).sum()))
     assert all(b < a for a, b in zip(total, total[1:])), total     # every severity loses points
     assert far == sorted(far, reverse=True) and far[5] < far[0] // 4   # the far scene fades away
@@ -120,14 +123,16 @@ def test_lidar_fog_on_a_scene_monotone_in_severity(clean_sweep):
 def test_beam_drop_and_sector(clean_sweep):
     cfg, sweep = clean_sweep
     rings = D.choose_rings(5, np.random.default_rng(3))
-    pts = degrade_sweep(sweep, with_degradation(cfg, beam_drop=5), rings, np.random.default_rng(1))
+    pts, seg = degrade_sweep(sweep, with_degradation(cfg, beam_drop=5), rings, np.random.default_rng(1))
+    keep = ~np.isin(sweep.points_lidar[:, 4], rings)
+    np.testing.assert_array_equal(seg, sweep.label[keep])          # the labels follow their points
     kept = set(np.unique(pts[:, 4]).astype(int))
     before = set(np.unique(sweep.points_lidar[:, 4]).astype(int))
     assert kept == before - set(rings.tolist()) and len(rings) == 5
     n_expected = (~np.isin(sweep.points_lidar[:, 4], rings)).sum()
     assert len(pts) == n_expected
 
-    pts = degrade_sweep(sweep, with_degradation(cfg, lidar_fov=90.0), rings[:0], np.random.default_rng(1))
+    pts, _ = degrade_sweep(sweep, with_degradation(cfg, lidar_fov=90.0), rings[:0], np.random.default_rng(1))
     # The ego's forward axis in the LIDAR_TOP frame: about +y (the mount is rotated by -90 deg).
     fwd = T_ego_from_lidar()[:3, :3].T @ np.array([1.0, 0.0, 0.0])
     assert fwd[1] > 0.99
@@ -138,8 +143,8 @@ def test_beam_drop_and_sector(clean_sweep):
 
     assert np.abs(azimuth(pts)).max() <= 45.0 and len(pts) > 0
     assert len(pts) == (np.abs(azimuth(sweep.points_lidar)) <= 45.0).sum()
-    assert len(degrade_sweep(sweep, with_degradation(cfg, drop_sensors="LIDAR_TOP"), rings[:0],
-                             np.random.default_rng(1))) == 0
+    pts, seg = degrade_sweep(sweep, with_degradation(cfg, drop_sensors="LIDAR_TOP"), rings[:0], np.random.default_rng(1))
+    assert len(pts) == 0 and len(seg) == 0
 
 
 def test_lens_dirt_is_deterministic_and_grows_with_severity():

@@ -162,3 +162,14 @@ def test_boxes_hold_their_meshes(worlds):
             half = np.array(a.size) / 2
             assert (lo >= -half - 1e-6).all() and (hi <= half + 1e-6).all(), (a.cls, a.size, a.mesh.bounds)
             assert len(a.mesh.metadata["reflectivity"]) == len(a.mesh.faces)
+
+
+def test_every_static_face_has_a_lidarseg_class(worlds):
+    """The static world's faces all carry one of the static classes (none is left at noise)."""
+    from simgen import lidarseg as LS
+    for world in worlds.values():
+        labels = world.static_mesh.metadata["lidarseg"]
+        assert labels.shape == (len(world.static_mesh.faces),)
+        assert set(np.unique(labels).tolist()) <= set(LS.STATIC) and (labels != LS.NOISE).all()
+        # Each surface kind is there (lawns or plazas, whichever this world drew).
+        assert {LS.ROAD, LS.SIDEWALK, LS.MANMADE, LS.VEGETATION} <= set(np.unique(labels).tolist())
