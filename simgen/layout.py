@@ -213,7 +213,8 @@ def build_static(grid: Grid, rng: np.random.Generator) -> tuple[trimesh.Trimesh,
     """The static world mesh (global frame) and the (s, 7) footprints of its clutter."""
     W, H = grid.extent
     p = Parts()
-    p.box((W, H, 0.02), (MAP_PAD + W / 2, MAP_PAD + H / 2, -0.01), ASPHALT, 0.12, label=LS.ROAD)          # road surface, top at z=0
+    # The road surface, its top at z = 0.
+    p.box((W, H, 0.02), (MAP_PAD + W / 2, MAP_PAD + H / 2, -0.01), ASPHALT, 0.12, label=LS.ROAD)
     sw = grid.cfg.sidewalk_width
     lawn = rng.random() < 0.5
     for x0, x1, y0, y1 in grid.blocks:

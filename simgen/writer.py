@@ -70,17 +70,15 @@ def static_tables() -> dict[str, list[dict]]:
     sensors = [{"token": token("sensor", ch), "channel": ch, "modality": "camera"} for ch in CAMERAS]
     sensors.append({"token": token("sensor", LIDAR), "channel": LIDAR, "modality": "lidar"})
     describe = {name: f"simgen {cls}" for cls, name in CATEGORY.items()}
-    describe.update({LS.NAMES[LS.ROAD]: "simgen static world: asphalt, lane markings, crosswalks",
-                     LS.NAMES[LS.SIDEWALK]: "simgen static world: sidewalks and curbs",
-                     LS.NAMES[LS.TERRAIN]: "simgen static world: lawns", LS.NAMES[LS.PLAZA]: "simgen static world: paved lots",
-                     LS.NAMES[LS.MANMADE]: "simgen static world: buildings, poles, bins",
-                     LS.NAMES[LS.VEGETATION]: "simgen static world: trees, hedges",
-                     LS.NAMES[LS.NOISE]: "simgen: fog returns"})
+    describe.update({LS.NAMES[i]: f"simgen static world: {what}" for i, what in (
+        (LS.ROAD, "asphalt, lane markings, crosswalks"), (LS.SIDEWALK, "sidewalks and curbs"), (LS.TERRAIN, "lawns"),
+        (LS.PLAZA, "paved lots"), (LS.MANMADE, "buildings, poles, bins"), (LS.VEGETATION, "trees, hedges"))})
+    describe[LS.NAMES[LS.NOISE]] = "simgen: fog returns"
     return {
         "sensor": sensors,
         # All of nuScenes-lidarseg's classes with their indices (the devkit needs 0..31 without gaps).
-        "category": [{"token": token("category", name), "name": name, "description": describe.get(name, "not generated"),
-                      "index": i} for i, name in enumerate(LS.NAMES)],
+        "category": [{"token": token("category", name), "name": name, "index": i,
+                      "description": describe.get(name, "not generated")} for i, name in enumerate(LS.NAMES)],
         "attribute": [{"token": token("attribute", name), "name": name, "description": name} for name in ATTRIBUTES],
         "visibility": [{"token": k, "level": v, "description": f"visibility of whole object is {v[1:]} %"}
                        for k, v in VISIBILITY_LEVELS.items()],
