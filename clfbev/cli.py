@@ -138,15 +138,12 @@ def cmd_predict(args) -> None:
 def cmd_show(args) -> None:
     import cv2
     import numpy as np
-    from clfbev.data import DataError, NuScenesDetection, collate
+    from clfbev.data import DataError, NuScenesDetection, collate, load_nuscenes
     from clfbev.visualize import attention_maps, attention_panel, cell_of, load_results, sample_sheet
 
     check_writable(args.out, is_file=True)
     results = load_results(args.results)
-    from nuscenes import NuScenes
-    if not (Path(args.data) / args.version).is_dir():
-        raise DataError(f"no nuScenes tables at {Path(args.data) / args.version}")
-    nusc = NuScenes(version=args.version, dataroot=str(args.data), verbose=False)
+    nusc = load_nuscenes(args.data, args.version)
     tokens = [t for t in (s["token"] for s in nusc.sample) if t in results]
     if not tokens:
         raise DataError(f"{args.results} has no sample of {Path(args.data) / args.version}")

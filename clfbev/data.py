@@ -233,6 +233,19 @@ def split_scene_names(dataroot: Path, version: str, split: str) -> list[str]:
 
 # ---------------------------------------------------------------- dataset
 
+def load_nuscenes(dataroot: str | Path, version: str):
+    """``NuScenes(version, dataroot)``, with a :class:`DataError` naming the problem instead of the
+    devkit's exception (a missing table, corrupt JSON, lidarseg.json without its
+    ``lidarseg/<version>/`` folder)."""
+    from nuscenes import NuScenes
+    if not (Path(dataroot) / version).is_dir():
+        raise DataError(f"no nuScenes tables at {Path(dataroot) / version} (dataroot {dataroot}, version {version})")
+    try:
+        return NuScenes(version=version, dataroot=str(dataroot), verbose=False)
+    except (OSError, AssertionError, ValueError, KeyError) as e:
+        raise DataError(f"nuscenes-devkit cannot load {Path(dataroot) / version}: {e}") from None
+
+
 class NuScenesDetection(torch.utils.data.Dataset):
     """Key-frame samples of one split of a nuScenes-format dataroot, as :class:`Sample`.
 
@@ -249,7 +262,6 @@ class NuScenesDetection(torch.utils.data.Dataset):
 
     def __init__(self, dataroot: str | Path, version: str, split: str, cfg: DataConfig = DataConfig(),
                  corruptions: tuple = ()):
-        from nuscenes import NuScenes
         self.root = Path(dataroot)
         self.cfg, self.version, self.split = cfg, version, split
         self.corruptions = tuple(corruptions)     # clfbev.corruptions.Corruption, applied at load time
@@ -257,7 +269,7 @@ class NuScenesDetection(torch.utils.data.Dataset):
             raise DataError(f"no nuScenes tables at {self.root / version} (dataroot {self.root}, version {version})")
         if split != ALL_SCENES:
             names = split_scene_names(self.root, version, split)
-        self.nusc = NuScenes(version=version, dataroot=str(self.root), verbose=False)
+        self.nusc = load_nuscenes(self.root, version)
         if split == ALL_SCENES:
             names = [s["name"] for s in self.nusc.scene]
         scene_by_name = {s["name"]: s for s in self.nusc.scene}

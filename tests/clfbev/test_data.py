@@ -205,6 +205,10 @@ def test_errors_name_the_file_or_split(tiny_dataset, tmp_path):
     for name in ("maps", "samples", VERSION):
         shutil.copytree(tiny_dataset / name, root / name)
     (root / "sweeps").symlink_to((tiny_dataset / "sweeps").resolve())
+    # The lidarseg labels' folder left out: lidarseg.json names it, so the devkit cannot load.
+    with pytest.raises(DataError, match="lidarseg"):
+        NuScenesDetection(root, VERSION, "sim-train")
+    (root / "lidarseg").symlink_to((tiny_dataset / "lidarseg").resolve())
     ds = NuScenesDetection(root, VERSION, "sim-train")
     lidar_sd = ds.nusc.get("sample_data", ds.nusc.get("sample", ds.sample_tokens[0])["data"]["LIDAR_TOP"])
     path = root / lidar_sd["filename"]
