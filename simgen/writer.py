@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from . import lidarseg as LS
+from .config import ConfigError
 from .rig import CAMERAS, LIDAR
 from .world import CATEGORY
 
@@ -110,7 +111,16 @@ def merge(dataroot: Path, version: str, n_scenes: int, val_fraction: float) -> d
     tables = {name: [] for name in (*TABLES, "lidarseg")}
     tables.update(static_tables())
     for i in range(n_scenes):
-        part = json.loads(part_path(dataroot, i).read_text())
+        path = part_path(dataroot, i)
+        try:
+            part = json.loads(path.read_text())
+            missing = [name for name in PER_SCENE_TABLES if name not in part]
+        except (json.JSONDecodeError, UnicodeDecodeError, TypeError):
+            part, missing = None, ["any"]
+        if missing:
+            # Damaged, or written by a simgen that wrote other tables: nothing is merged from it.
+            raise ConfigError(f"{path}: a scene part without {missing[0]} records (damaged, or made by another "
+                              f"simgen version); delete it and rerun the same command to make that scene again")
         for name in PER_SCENE_TABLES:
             tables[name].extend(part[name])
     out = dataroot / version

@@ -46,3 +46,21 @@ def test_other_settings_in_the_same_out_are_refused(tiny_dataset, tmp_path):
     proc = run_simgen("make", "--out", copy, "--preset", "tiny", "--scenes", "2", "--samples-per-scene", "3",
                       "--seed", "8", "--quiet", check=False)
     assert proc.returncode == 2 and "other settings (differing: seed)" in proc.stderr
+
+
+def test_a_damaged_part_is_named_and_nothing_is_merged(tiny_dataset, tmp_path):
+    """A part file without a table (damaged, or from another simgen version) stops the merge with
+    one line naming it; the tables already written are left as they were."""
+    import json
+    import shutil
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_dataset, copy)
+    part = copy / ".parts" / "scene-0001.json"
+    records = json.loads(part.read_text())
+    del records["lidarseg"]
+    part.write_text(json.dumps(records))
+    before = file_hashes(copy / "v1.0-sim")
+    proc = run_simgen("make", "--out", copy, *TINY_ARGS, check=False)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert f"{part}: a scene part without lidarseg records" in proc.stderr
+    assert file_hashes(copy / "v1.0-sim") == before
