@@ -52,8 +52,23 @@ def draw_camera(nusc, sd_token: str, width: int) -> np.ndarray:
     return cv2.resize(img, (width, int(round(img.shape[0] * scale))), interpolation=cv2.INTER_AREA)
 
 
+def point_colors(nusc, sd_token: str, pts: np.ndarray) -> tuple[np.ndarray, str]:
+    """(n, 3) BGR per point: the devkit's nuScenes-lidarseg colours when the sweep has labels,
+    else grey by intensity and height; and a caption saying which."""
+    seg = {r["sample_data_token"]: r for r in getattr(nusc, "lidarseg", [])}.get(sd_token)
+    if seg is not None:
+        labels = np.fromfile(Path(nusc.dataroot) / seg["filename"], dtype=np.uint8)
+        if len(labels) == pts.shape[1]:
+            palette = np.array([nusc.colormap[nusc.lidarseg_idx2name_mapping[i]][::-1]
+                                for i in range(len(nusc.lidarseg_idx2name_mapping))], np.uint8)
+            return palette[np.minimum(labels, len(palette) - 1)], "lidarseg colours"
+    shade = np.clip(80 + pts[3] * 0.7 + (pts[2] + 2) * 25, 60, 255).astype(np.uint8)
+    return np.stack([shade] * 3, 1), "intensity"
+
+
 def draw_bev(nusc, sd_token: str, size: int, half_range: float = 50.0) -> np.ndarray:
-    """Lidar BEV (sensor frame, x right, y up) with the GT boxes, ``half_range`` metres each way."""
+    """Lidar BEV (sensor frame, x right, y up) with the GT boxes, ``half_range`` metres each way;
+    the points in their lidarseg class colours when the dataset has them."""
     from nuscenes.utils.data_classes import LidarPointCloud
     path, boxes, _ = nusc.get_sample_data(sd_token)
     try:
@@ -65,8 +80,8 @@ def draw_bev(nusc, sd_token: str, size: int, half_range: float = 50.0) -> np.nda
     u = ((pts[0] + half_range) * s).astype(int)
     v = ((half_range - pts[1]) * s).astype(int)
     ok = (u >= 0) & (u < size) & (v >= 0) & (v < size)
-    shade = np.clip(80 + pts[3] * 0.7 + (pts[2] + 2) * 25, 60, 255).astype(np.uint8)
-    img[v[ok], u[ok]] = np.stack([shade[ok]] * 3, 1)
+    colors, caption = point_colors(nusc, sd_token, pts)
+    img[v[ok], u[ok]] = colors[ok]
     for box in boxes:
         c = box.bottom_corners()[:2].T                 # (4, 2)
         poly = np.stack([(c[:, 0] + half_range) * s, (half_range - c[:, 1]) * s], 1).astype(np.int32)
@@ -76,7 +91,8 @@ def draw_bev(nusc, sd_token: str, size: int, half_range: float = 50.0) -> np.nda
         centre = poly.mean(0).astype(int)
         cv2.line(img, tuple(centre), tuple(front), color, 1, cv2.LINE_AA)
     cv2.circle(img, (size // 2, size // 2), 4, (0, 0, 255), -1)
-    cv2.putText(img, f"LIDAR_TOP  {half_range:.0f} m", (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2)
+    cv2.putText(img, f"LIDAR_TOP  {half_range:.0f} m, {caption}", (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7,
+                (255, 255, 255), 2)
     return img
 
 
