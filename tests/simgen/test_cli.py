@@ -72,3 +72,21 @@ def test_check_reports_a_truncated_file(tiny_dataset, tmp_path):
     (copy / "v1.0-sim" / "sample.json").write_text("[{")
     proc = run_simgen("check", copy, check=False)
     assert proc.returncode == 2 and "sample.json" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_show_writes_the_contact_sheet(tiny_dataset, tmp_path):
+    """Six cameras in two rows and the lidar BEV beside them, its points in lidarseg colours."""
+    import cv2
+    import numpy as np
+    out = tmp_path / "sheet.png"
+    proc = run_simgen("show", tiny_dataset, "--sample", "1", "--out", out)
+    assert proc.returncode == 0 and str(out) in proc.stdout
+    sheet = cv2.imread(str(out))
+    h, w = sheet.shape[:2]
+    assert w == 3 * 640 + h                       # three 640-px camera tiles, then a square BEV
+    bev = sheet[:, w - h:]
+    road = np.all(bev == (191, 207, 0), axis=-1).sum()          # flat.driveable_surface, BGR
+    building = np.all(bev == (135, 184, 222), axis=-1).sum()    # static.manmade
+    assert road > 500 and building > 100, (road, building)
+    proc = run_simgen("show", tiny_dataset, "--sample", "99", "--out", out, check=False)
+    assert proc.returncode == 2 and "--sample 99" in proc.stderr and "Traceback" not in proc.stderr
