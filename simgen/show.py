@@ -57,11 +57,16 @@ def point_colors(nusc, sd_token: str, pts: np.ndarray) -> tuple[np.ndarray, str]
     else grey by intensity and height; and a caption saying which."""
     seg = {r["sample_data_token"]: r for r in getattr(nusc, "lidarseg", [])}.get(sd_token)
     if seg is not None:
-        labels = np.fromfile(Path(nusc.dataroot) / seg["filename"], dtype=np.uint8)
-        if len(labels) == pts.shape[1]:
-            palette = np.array([nusc.colormap[nusc.lidarseg_idx2name_mapping[i]][::-1]
-                                for i in range(len(nusc.lidarseg_idx2name_mapping))], np.uint8)
-            return palette[np.minimum(labels, len(palette) - 1)], "lidarseg colours"
+        path = Path(nusc.dataroot) / seg["filename"]
+        try:
+            labels = np.fromfile(path, dtype=np.uint8)
+        except OSError as e:
+            raise ConfigError(f"{path}: unreadable lidarseg labels ({e})") from None
+        if len(labels) != pts.shape[1]:
+            raise ConfigError(f"{path}: {len(labels)} lidarseg labels for a sweep of {pts.shape[1]} points")
+        palette = np.array([nusc.colormap[nusc.lidarseg_idx2name_mapping[i]][::-1]
+                            for i in range(len(nusc.lidarseg_idx2name_mapping))], np.uint8)
+        return palette[np.minimum(labels, len(palette) - 1)], "lidarseg colours"
     shade = np.clip(80 + pts[3] * 0.7 + (pts[2] + 2) * 25, 60, 255).astype(np.uint8)
     return np.stack([shade] * 3, 1), "intensity"
 
