@@ -233,13 +233,18 @@ def split_scene_names(dataroot: Path, version: str, split: str) -> list[str]:
 
 # ---------------------------------------------------------------- dataset
 
+def require_tables(dataroot: str | Path, version: str) -> None:
+    """A :class:`DataError` unless ``<dataroot>/<version>/`` exists."""
+    if not (Path(dataroot) / version).is_dir():
+        raise DataError(f"no nuScenes tables at {Path(dataroot) / version} (dataroot {dataroot}, version {version})")
+
+
 def load_nuscenes(dataroot: str | Path, version: str):
     """``NuScenes(version, dataroot)``, with a :class:`DataError` naming the problem instead of the
     devkit's exception (a missing table, corrupt JSON, lidarseg.json without its
     ``lidarseg/<version>/`` folder)."""
     from nuscenes import NuScenes
-    if not (Path(dataroot) / version).is_dir():
-        raise DataError(f"no nuScenes tables at {Path(dataroot) / version} (dataroot {dataroot}, version {version})")
+    require_tables(dataroot, version)
     try:
         return NuScenes(version=version, dataroot=str(dataroot), verbose=False)
     except (OSError, AssertionError, ValueError, KeyError) as e:
@@ -265,8 +270,7 @@ class NuScenesDetection(torch.utils.data.Dataset):
         self.root = Path(dataroot)
         self.cfg, self.version, self.split = cfg, version, split
         self.corruptions = tuple(corruptions)     # clfbev.corruptions.Corruption, applied at load time
-        if not (self.root / version).is_dir():
-            raise DataError(f"no nuScenes tables at {self.root / version} (dataroot {self.root}, version {version})")
+        require_tables(self.root, version)          # before the split names: a bad split fails fast
         if split != ALL_SCENES:
             names = split_scene_names(self.root, version, split)
         self.nusc = load_nuscenes(self.root, version)

@@ -140,12 +140,13 @@ def fog_lidar(points: np.ndarray, rho_cos: np.ndarray, range_m: np.ndarray, dir_
               background_gain: float) -> tuple[np.ndarray, np.ndarray]:
     """Apply fog to one sweep.
 
-    points : (n, 5) float32 x, y, z, intensity, ring (lidar frame). rho_cos : (n,) reflectivity
+    points : (n, >=5) float32 x, y, z, intensity, ring (lidar frame), then any columns carried
+    along unchanged (e.g. a per-point label). rho_cos : (n,) reflectivity
     times cos(incidence). range_m : (n,) measured range. dir_lidar : (n, 3) unit ray directions.
     min_return : clear-weather detection threshold on ``P`` (1/m^2); ref_range : intensity scale
     (lidar.py). background_gain : ``G``, the threshold's rise under a full-airlight background.
 
-    Returns (points' (k, 5), is_fog (k,) bool): the surviving returns, hard ones attenuated in
+    Returns (points' (k, same columns), is_fog (k,) bool): the surviving returns, hard ones attenuated in
     place, fog-won ones moved along their ray to the fog range with the fog intensity.
     """
     if alpha <= 0 or len(points) == 0:
@@ -169,7 +170,7 @@ def fog_lidar(points: np.ndarray, rho_cos: np.ndarray, range_m: np.ndarray, dir_
 # ---------------------------------------------------------------- lidar structure
 
 def drop_rings(points: np.ndarray, rings: np.ndarray) -> np.ndarray:
-    """Points (n, 5) without those whose ring (column 4) is in ``rings``."""
+    """Points (n, >=5) without those whose ring (column 4) is in ``rings``; whole rows are kept."""
     return points[~np.isin(points[:, 4].astype(np.int64), np.asarray(rings, np.int64))]
 
 
@@ -179,8 +180,8 @@ def choose_rings(n_drop: int, rng: np.random.Generator, n_rings: int = 32) -> np
 
 
 def keep_sector(points: np.ndarray, forward_lidar: np.ndarray, fov_deg: float) -> np.ndarray:
-    """Points (n, 5) whose horizontal azimuth is within ``fov_deg / 2`` of ``forward_lidar``
-    (a unit xy direction in the lidar frame: the ego's forward axis)."""
+    """Points (n, >=5) whose horizontal azimuth is within ``fov_deg / 2`` of ``forward_lidar``
+    (a unit xy direction in the lidar frame: the ego's forward axis); whole rows are kept."""
     if fov_deg >= 360:
         return points
     az = np.arctan2(points[:, 1], points[:, 0]) - math.atan2(forward_lidar[1], forward_lidar[0])

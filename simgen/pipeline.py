@@ -38,8 +38,8 @@ def degrade_sweep(sweep, cfg: SceneConfig, rings: np.ndarray,
     d = cfg.degrade
     if rig.LIDAR in d.dropped:
         return np.zeros((0, 5), np.float32), np.zeros(0, np.uint8)
-    # The label rides along as a sixth column: every step below keeps or drops whole rows and
-    # leaves the columns after the ring alone.
+    # The label rides along as a sixth column: the degradation steps keep or drop whole rows and
+    # carry the columns after the ring unchanged (their contract in simgen.degrade).
     pts = np.concatenate([sweep.points_lidar, sweep.label[:, None].astype(np.float32)], axis=1)
     if d.alpha > 0:
         pts, is_fog = D.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, d.alpha,

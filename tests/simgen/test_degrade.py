@@ -132,7 +132,7 @@ def test_beam_drop_and_sector(clean_sweep):
     n_expected = (~np.isin(sweep.points_lidar[:, 4], rings)).sum()
     assert len(pts) == n_expected
 
-    pts, _ = degrade_sweep(sweep, with_degradation(cfg, lidar_fov=90.0), rings[:0], np.random.default_rng(1))
+    pts, seg = degrade_sweep(sweep, with_degradation(cfg, lidar_fov=90.0), rings[:0], np.random.default_rng(1))
     # The ego's forward axis in the LIDAR_TOP frame: about +y (the mount is rotated by -90 deg).
     fwd = T_ego_from_lidar()[:3, :3].T @ np.array([1.0, 0.0, 0.0])
     assert fwd[1] > 0.99
@@ -143,6 +143,7 @@ def test_beam_drop_and_sector(clean_sweep):
 
     assert np.abs(azimuth(pts)).max() <= 45.0 and len(pts) > 0
     assert len(pts) == (np.abs(azimuth(sweep.points_lidar)) <= 45.0).sum()
+    np.testing.assert_array_equal(seg, sweep.label[np.abs(azimuth(sweep.points_lidar)) <= 45.0])
     pts, seg = degrade_sweep(sweep, with_degradation(cfg, drop_sensors="LIDAR_TOP"), rings[:0], np.random.default_rng(1))
     assert len(pts) == 0 and len(seg) == 0
 
