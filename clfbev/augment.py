@@ -20,9 +20,7 @@ Every function is pure (returns a new Sample; the input is not modified), comput
 and returns each tensor in its input dtype, so a float64 Sample round-trips to ~1e-12. Randomness
 only enters through :func:`random_augment`'s explicit ``rng``.
 
-Not implemented: GT-paste (copy-paste of database objects). It needs an object database built
-from the training split and a collision test, and would also have to paste image patches to
-stay consistent across modalities; it is left out rather than faked.
+GT-paste (copy-paste of database objects) is :mod:`clfbev.gt_paste`.
 """
 
 from __future__ import annotations
@@ -121,8 +119,18 @@ def crop_to_range(sample: Sample, point_range: tuple[float, ...]) -> Sample:
     pts, boxes = sample.points.cpu().numpy(), sample.gt_boxes.cpu().numpy()
     keep_p = torch.from_numpy(((pts[:, :3] >= lo) & (pts[:, :3] < hi)).all(axis=1)).to(sample.points.device)
     keep_b = torch.from_numpy(((boxes[:, :3] >= lo) & (boxes[:, :3] < hi)).all(axis=1)).to(sample.gt_boxes.device)
+    pasted = None if sample.pasted is None else sample.pasted[keep_p.to(sample.pasted.device)]
     return replace(sample, points=sample.points[keep_p], gt_boxes=sample.gt_boxes[keep_b],
-                   gt_labels=sample.gt_labels[keep_b.to(sample.gt_labels.device)])
+                   gt_labels=sample.gt_labels[keep_b.to(sample.gt_labels.device)], pasted=pasted)
+
+
+def shuffle_points(sample: Sample, rng: np.random.Generator) -> Sample:
+    """The points (and their ``pasted`` flags) in a random order. The loader lists the key sweep
+    first; the voxelizer's ``max_voxels`` cap keeps voxels by their first point's input order,
+    so without a shuffle the oldest sweep would always be the first to lose voxels."""
+    perm = torch.from_numpy(rng.permutation(len(sample.points))).to(sample.points.device)
+    pasted = None if sample.pasted is None else sample.pasted[perm.to(sample.pasted.device)]
+    return replace(sample, points=sample.points[perm], pasted=pasted)
 
 
 # ---------------------------------------------------------------- image augmentation
@@ -225,9 +233,10 @@ def random_augment(sample: Sample, rng: np.random.Generator, cfg: AugmentConfig 
     """Draw a global and an image augmentation from ``cfg`` with ``rng`` and apply both.
 
     Deterministic given the rng state. The draws are always made in the same order (rot, scale,
-    flip_y, resize, crop top, crop left, image flip), whatever is enabled, so one setting does
-    not shift the random stream of the others. One image augmentation is shared by all cameras.
-    The output image size equals the input's.
+    flip_y, resize, crop top, crop left, image flip, point order), whatever is enabled, so one
+    setting does not shift the random stream of the others. One image augmentation is shared by
+    all cameras. The output image size equals the input's. The points come out shuffled
+    (:func:`shuffle_points`).
     """
     rot = float(rng.uniform(-cfg.rot_range, cfg.rot_range))
     scale = float(rng.uniform(*cfg.scale_range))
@@ -239,4 +248,5 @@ def random_augment(sample: Sample, rng: np.random.Generator, cfg: AugmentConfig 
     flip_img = bool(rng.random() < cfg.img_flip_prob)
 
     out = global_transform(sample, rot, scale, flip_y)
-    return image_transform(out, resize, (top, left), (H, W), flip_img)
+    out = image_transform(out, resize, (top, left), (H, W), flip_img)
+    return shuffle_points(out, rng)

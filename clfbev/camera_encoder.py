@@ -234,7 +234,17 @@ class CameraEncoder(nn.Module):
         T_lidar_from_cam: Tensor,
         img_aug: Tensor | None = None,
     ) -> Tensor:
-        """Camera BEV.
+        """Camera BEV, (B, out_channels, ny, nx); see :meth:`lift_splat`."""
+        return self.lift_splat(images, intrinsics, T_lidar_from_cam, img_aug)[0]
+
+    def lift_splat(
+        self,
+        images: Tensor,
+        intrinsics: Tensor,
+        T_lidar_from_cam: Tensor,
+        img_aug: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Camera BEV and the depth distribution it was lifted with (for the depth loss).
 
         Parameters
         ----------
@@ -245,10 +255,11 @@ class CameraEncoder(nn.Module):
 
         Returns
         -------
-        (B, out_channels, ny, nx) camera BEV in the lidar frame.
+        bev : (B, out_channels, ny, nx) camera BEV in the lidar frame.
+        depth : (B, N, D, h, w) depth distribution of every feature cell.
         """
         depth, context = self.image_features(images)
         geom = lift_geometry(
             intrinsics, T_lidar_from_cam, img_aug, self.image_size, self.feature_stride, self.depth_bins
         )
-        return compress_z(splat(depth, context, geom, self.pc_range, self.bev_voxel))
+        return compress_z(splat(depth, context, geom, self.pc_range, self.bev_voxel)), depth

@@ -41,9 +41,11 @@ class ModelConfig:
 
     Data: ``class_names`` (label order), ``pc_range`` (xmin, ymin, zmin, xmax, ymax, zmax),
     ``n_sweeps`` (lidar sweeps per sample, time-lag channel), ``image_size`` (H, W).
-    Lidar: ``voxel_size`` (dx, dy, dz), ``max_points_per_voxel``, ``max_voxels`` (per sample),
-    ``vfe_ch`` (VFE MLP width, 512 in the paper), ``sparse_channels`` (one entry per sparse
-    stage; each stage after the first halves x, y, z), ``sparse_blocks``.
+    Lidar: ``voxel_size`` (dx, dy, dz), ``max_voxels`` (per sample; dynamic voxelization keeps
+    every point of a kept voxel), ``vfe_ch`` (VFE MLP width, 512 in the paper),
+    ``sparse_channels`` (one entry per sparse stage; each stage after the first halves z),
+    ``lidar_bev_stride`` (the x/y stride of the lidar BEV over the voxels: the first
+    log2(stride) downsamplings also halve x and y), ``sparse_blocks``.
     Camera: ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``, ``context_ch``, ``depth_bins``
     (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``.
     Fusion: ``fusion_dim`` (ConvFuser / MCM / BSM channels), ``attn_heads``, ``attn_mode``
@@ -58,20 +60,20 @@ class ModelConfig:
     class_names: tuple[str, ...] = DETECTION_CLASSES
     pc_range: tuple[float, ...] = (-51.2, -51.2, -5.0, 51.2, 51.2, 3.0)
     n_sweeps: int = 3
-    image_size: tuple[int, int] = (128, 352)
+    image_size: tuple[int, int] = (192, 352)
     # lidar
     voxel_size: tuple[float, float, float] = (0.4, 0.4, 0.4)
-    max_points_per_voxel: int = 10
-    max_voxels: int = 30000
+    max_voxels: int = 60000
     vfe_ch: int = 32
     sparse_channels: tuple[int, ...] = (8, 16, 32)
+    lidar_bev_stride: int = 2
     sparse_blocks: int = 1
     # camera
     cam_depth: int = 18
     cam_width: int = 16
     fpn_ch: int = 64
     context_ch: int = 32
-    depth_bins: tuple[float, float, float] = (1.0, 55.0, 6.0)
+    depth_bins: tuple[float, float, float] = (1.0, 52.0, 1.0)
     feature_stride: int = 8
     cam_z_slabs: int = 1
     # fusion
@@ -130,7 +132,8 @@ class ModelConfig:
     def _sparse_out(self) -> tuple[tuple[int, int], int]:
         # The encoder's own size arithmetic, on the meta device: no memory, no init cost.
         with torch.device("meta"):
-            enc = SparseEncoder(self.vfe_ch, self.sparse_channels, self.lidar_grid_shape, self.sparse_blocks)
+            enc = SparseEncoder(self.vfe_ch, self.sparse_channels, self.lidar_grid_shape, self.sparse_blocks,
+                                xy_stride=self.lidar_bev_stride)
         return enc.out_size(), enc.out_channels
 
     @property
@@ -234,10 +237,10 @@ def paper() -> ModelConfig:
         n_sweeps=10,
         image_size=(640, 1600),
         voxel_size=(0.075, 0.075, 0.2),
-        max_points_per_voxel=10,
         max_voxels=120000,
         vfe_ch=512,
         sparse_channels=(16, 32, 64, 128),
+        lidar_bev_stride=8,
         sparse_blocks=2,
         cam_depth=101,
         cam_width=64,
@@ -282,6 +285,20 @@ def load_config(name_or_path: str | Path) -> ModelConfig:
     except yaml.YAMLError as e:
         raise ValueError(f"{path}: not valid YAML: {e}") from None
     return config_from_dict(data, path)
+
+
+def preset_of(name_or_path: str | Path) -> str:
+    """The preset a config name or YAML file builds on ('tiny' unless the file says otherwise);
+    it also picks the training recipe (:func:`clfbev.train.recipe`)."""
+    if str(name_or_path) in PRESETS:
+        return str(name_or_path)
+    import yaml
+
+    try:
+        data = yaml.safe_load(Path(name_or_path).read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return "tiny"  # load_config reports the file's problem with its own message
+    return data.get("preset", "tiny") if isinstance(data, dict) else "tiny"
 
 
 def config_from_dict(data, source: str | Path = "<config>") -> ModelConfig:

@@ -12,8 +12,12 @@ Frames and conventions
   ``T_global_from_X = T_global_from_ego(X's ego pose) @ T_ego_from_X(calibrated_sensor)``.
 - Pixel coordinates use the pixel-edge convention (pixel c covers [c, c + 1)), as in
   :mod:`clfbev.camera_encoder`. ``intrinsics`` is the calibrated K of the ORIGINAL image and
-  ``img_aug`` maps original pixels to the pixels of the image the network sees; here it is the
-  resize ``A = diag(W'/W, H'/H, 1)``, exact in this convention. So a lidar point projects to
+  ``img_aug`` maps original pixels to the pixels of the image the network sees. Here that is a
+  resize keeping the aspect ratio to the network width, then a crop of the top rows (sky) to
+  the network height: ``A = [[s, 0, 0], [0, s', -top], [0, 0, 1]]`` with ``s = W'/W`` and
+  ``s' = round(s H) / H`` (within 0.3% of s), exact in this convention. Squeezing the height
+  instead (the old 704x396 -> 352x128) shrank objects vertically 1.6 times more than
+  horizontally: a pedestrian at 20 m was two feature rows. So a lidar point projects to
   ``[u', v', 1] ~ img_aug @ intrinsics @ T_cam_from_lidar @ p`` (``A K`` is the K of the resized
   image). The camera encoder composes ``img_aug @ intrinsics`` itself, so K is not pre-scaled.
 - Boxes are ``(x, y, z, l, w, h, yaw)`` (+ ``vx, vy``) as in :mod:`clfbev.ops.boxes`;
@@ -55,7 +59,8 @@ class DataConfig:
     """What the loader produces.
 
     class_names : detection classes, in label order (label = index).
-    image_size : (H, W) of the images the network sees.
+    image_size : (H, W) of the images the network sees (resized to W keeping the aspect
+        ratio, then cropped or padded at the top to H; see :func:`resize_and_crop`).
     n_sweeps : lidar sweeps per sample: the key frame plus n_sweeps - 1 previous sweeps.
     point_range : (xmin, ymin, zmin, xmax, ymax, zmax), key-frame lidar frame; points outside
         and boxes whose centre lies outside are dropped (min <= p < max).
@@ -64,7 +69,7 @@ class DataConfig:
     """
 
     class_names: tuple[str, ...] = DETECTION_CLASSES
-    image_size: tuple[int, int] = (128, 352)
+    image_size: tuple[int, int] = (192, 352)
     n_sweeps: int = 3
     point_range: tuple[float, ...] = (-51.2, -51.2, -5.0, 51.2, 51.2, 3.0)
     min_points: int = 1
@@ -89,6 +94,7 @@ class Sample:
     gt_labels : (M,) int64 index into ``DataConfig.class_names``.
     T_global_from_lidar : (4, 4) float64, to send predictions back to nuScenes global form.
     sample_token : the nuScenes sample token.
+    pasted : (n,) bool, True for points GT-paste added (no pixel shows them), or None.
     """
 
     images: Tensor
@@ -100,6 +106,7 @@ class Sample:
     gt_labels: Tensor
     T_global_from_lidar: Tensor
     sample_token: str
+    pasted: Tensor | None = None
 
 
 @dataclass
@@ -109,7 +116,7 @@ class Batch:
     images : (B, N, 3, H, W) float32.  intrinsics : (B, N, 3, 3).  T_lidar_from_cam : (B, N, 4, 4).
     img_aug : (B, N, 3, 3).  T_global_from_lidar : (B, 4, 4) float64.
     points : list of B (n_i, 5).  gt_boxes : list of B (M_i, 9).  gt_labels : list of B (M_i,).
-    sample_tokens : list of B str.
+    sample_tokens : list of B str.  pasted : list of B (n_i,) bool or None (see :class:`Sample`).
     """
 
     images: Tensor
@@ -121,6 +128,7 @@ class Batch:
     gt_labels: list[Tensor]
     T_global_from_lidar: Tensor
     sample_tokens: list[str] = field(default_factory=list)
+    pasted: list[Tensor | None] = field(default_factory=list)
 
     def to(self, device: torch.device | str) -> "Batch":
         """A copy with every tensor on ``device`` (tokens are shared)."""
@@ -134,6 +142,7 @@ class Batch:
             gt_labels=[labels.to(device) for labels in self.gt_labels],
             T_global_from_lidar=self.T_global_from_lidar.to(device),
             sample_tokens=list(self.sample_tokens),
+            pasted=[None if m is None else m.to(device) for m in self.pasted],
         )
 
 
@@ -149,6 +158,7 @@ def collate(samples: list[Sample]) -> Batch:
         gt_labels=[s.gt_labels for s in samples],
         T_global_from_lidar=torch.stack([s.T_global_from_lidar for s in samples]),
         sample_tokens=[s.sample_token for s in samples],
+        pasted=[s.pasted for s in samples],
     )
 
 
@@ -208,6 +218,27 @@ def load_image(path: Path) -> np.ndarray:
         what = "missing" if not path.exists() else "unreadable"
         raise DataError(f"{what} image file {path}")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def resize_and_crop(rgb: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Resize (h0, w0, 3) uint8 to the width of ``size = (H, W)`` keeping the aspect ratio, then
+    crop the top rows to height H (or pad the top with black when the image is too short).
+
+    Returns the (H, W, 3) image and the (3, 3) float64 map from original to new pixels
+    (pixel-edge convention): ``u' = (W / w0) u``, ``v' = (h1 / h0) v - top``, with h1 the
+    resized height and ``top = h1 - H``. The bottom of the image (road, objects) is kept.
+    """
+    H, W = size
+    h0, w0 = rgb.shape[:2]
+    h1 = max(1, int(round(h0 * W / w0)))
+    # INTER_AREA averages when shrinking (no aliasing); cv2 maps pixel centres, which is the
+    # same map u' = s u in the pixel-edge convention.
+    interp = cv2.INTER_AREA if (h1 < h0 and W < w0) else cv2.INTER_LINEAR
+    resized = cv2.resize(rgb, (W, h1), interpolation=interp)
+    top = h1 - H
+    out = resized[top:] if top >= 0 else np.pad(resized, ((-top, 0), (0, 0), (0, 0)))
+    A = np.array([[W / w0, 0.0, 0.0], [0.0, h1 / h0, -top], [0.0, 0.0, 1.0]])
+    return np.ascontiguousarray(out), A
 
 
 def split_scene_names(dataroot: Path, version: str, split: str) -> list[str]:
@@ -335,16 +366,11 @@ class NuScenesDetection(torch.utils.data.Dataset):
         for cam in CAMERAS:
             sd = self.nusc.get("sample_data", sample["data"][cam])
             calib = self.nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
-            rgb = load_image(self.root / sd["filename"])
-            h0, w0 = rgb.shape[:2]
-            # INTER_AREA averages when shrinking (no aliasing); cv2 maps pixel centres, which is
-            # the same map u' = s u in the pixel-edge convention.
-            interp = cv2.INTER_AREA if (H < h0 and W < w0) else cv2.INTER_LINEAR
-            rgb = cv2.resize(rgb, (W, H), interpolation=interp)
-            images.append(((rgb.astype(np.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1))
+            image, A = resize_and_crop(load_image(self.root / sd["filename"]), (H, W))
+            images.append(((image.astype(np.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1))
             Ks.append(np.asarray(calib["camera_intrinsic"], dtype=np.float64))
             Ts.append(T_lidar_from_global @ self._T_global_from_sensor(sd))
-            As.append(np.diag([W / w0, H / h0, 1.0]))
+            As.append(A)
         return np.stack(images), np.stack(Ks), np.stack(Ts), np.stack(As)
 
     def _points(self, key_sd: dict, T_lidar_from_global: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

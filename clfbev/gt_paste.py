@@ -1,9 +1,13 @@
 """GT-paste (SECOND's ground-truth sampling): objects cut out of other training samples, with their
 lidar points, pasted into a sample at their original place in the lidar frame.
 
-Lidar only: the pasted objects are not drawn into the images, so a camera or fusion model sees a
-lidar object its cameras do not show. That is why it is off by default (``--gt-paste 0``), and
-the usual practice (BEVFusion) is to use it for lidar models or in early epochs only.
+Lidar only: the pasted objects are not drawn into the images (a convincing image patch needs
+the object's appearance from that camera, its occlusion and lighting). So a fusion model sees a
+lidar object its cameras do not show, which teaches it to detect from the lidar when the
+camera has no evidence, the behaviour a robust fusion wants anyway (BEVFusion pastes for its
+fusion models too). The pasted points are flagged (``Sample.pasted``) so that the camera's
+depth supervision ignores them, and the ``camera`` variant does not paste at all: it would be
+asked to find objects with no pixels (:func:`clfbev.train.recipe`).
 
 A pasted box must not overlap (BEV IoU > 0) any box already in the sample or pasted before it;
 the sample's own points inside a pasted box are removed, so each pasted box holds exactly the
@@ -79,7 +83,10 @@ def gt_paste(sample: Sample, db: GTDatabase, n: int, rng: np.random.Generator) -
     for i in chosen:
         keep &= ~points_in_box(pts, db.boxes[i])
     new_pts = np.concatenate([pts[keep], *[db.points[i] for i in chosen]]).astype(pts.dtype)
+    was_pasted = np.zeros(len(pts), bool) if sample.pasted is None else sample.pasted.numpy()
+    pasted = np.concatenate([was_pasted[keep], np.ones(len(new_pts) - int(keep.sum()), bool)])
     return replace(sample,
                    points=torch.from_numpy(new_pts),
+                   pasted=torch.from_numpy(pasted),
                    gt_boxes=torch.from_numpy(np.concatenate([boxes, db.boxes[chosen]]).astype(boxes.dtype)),
                    gt_labels=torch.cat([sample.gt_labels, torch.from_numpy(db.labels[chosen])]))

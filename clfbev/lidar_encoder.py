@@ -34,20 +34,19 @@ def conv_out_size(n: int, kernel: int, stride: int, padding: int) -> int:
 
 
 class VFE(nn.Module):
-    """VoxelNet-style voxel feature encoding: per-point MLP, then max over each voxel's points.
+    """Dynamic VoxelNet-style voxel feature encoding: per-point MLP, then max over each voxel's
+    points (every point of the voxel, see :mod:`clfbev.ops.voxelize`).
 
-    Each real point is augmented with its offset to the mean of its voxel's points and its
-    offset to the voxel centre (VoxelNet / PointPillars), so the MLP sees where the point lies
-    inside its voxel as well as where the voxel is:
+    Each point is augmented with its offset to the mean of its voxel's points and its offset to
+    the voxel centre (VoxelNet / PointPillars), so the MLP sees where the point lies inside its
+    voxel as well as where the voxel is. Every input is brought to order 1 first: the raw x, y,
+    z to [-1, 1] over ``pc_range`` and the two offsets in voxel units. In metres, a point at
+    40 m would feed the MLP a value 100 times the 0.4 m voxel's offsets, and the local geometry
+    (what tells a pole from a pedestrian) would be drowned by where the voxel is.
 
-        aug = [p (C), xyz - mean_xyz (3), xyz - centre_xyz (3)]          (C + 6,)
+        aug = [xyz_norm (3), p[3:] (C - 3), (xyz - mean) / voxel (3), (xyz - centre) / voxel (3)]
         h = ReLU(Norm(Linear(aug)))                                       (out_ch,)
-        voxel feature = max over the voxel's real points of h
-
-    Padded slots (``slot >= num_points[v]``) are never read: the MLP runs on the gathered real
-    points only, so their content cannot matter and they cannot win the max (nor pollute the
-    BatchNorm statistics, as zero-padded slots do in the usual dense implementation). This is
-    also cheaper: M real points instead of V * P slots.
+        voxel feature = max over the voxel's points of h
 
     Parameters
     ----------
@@ -55,7 +54,7 @@ class VFE(nn.Module):
     out_ch : feature size per voxel (512 in the paper).
     voxel_size : (dx, dy, dz) metres.
     pc_range : (xmin, ymin, zmin, xmax, ymax, zmax) metres, lidar frame.
-    norm : "batch" (BatchNorm1d over the real points of the batch) or "layer" (LayerNorm per
+    norm : "batch" (BatchNorm1d over the points of the batch) or "layer" (LayerNorm per
         point, batch independent).
     """
 
@@ -72,8 +71,11 @@ class VFE(nn.Module):
             raise ValueError(f"VFE needs points with x, y, z (in_ch >= 3), got in_ch={in_ch}")
         self.in_ch, self.out_ch = in_ch, out_ch
         self.aug_ch = in_ch + 6
+        lo, hi = torch.tensor(pc_range[:3], dtype=torch.float32), torch.tensor(pc_range[3:], dtype=torch.float32)
         self.register_buffer("voxel_size", torch.tensor(voxel_size, dtype=torch.float32), persistent=False)
-        self.register_buffer("origin", torch.tensor(pc_range[:3], dtype=torch.float32), persistent=False)
+        self.register_buffer("origin", lo, persistent=False)
+        self.register_buffer("range_centre", (lo + hi) / 2, persistent=False)
+        self.register_buffer("range_half", (hi - lo) / 2, persistent=False)
         if norm == "batch":
             norm_layer: nn.Module = nn.BatchNorm1d(out_ch, eps=BN_EPS, momentum=BN_MOMENTUM)
         elif norm == "layer":
@@ -83,55 +85,51 @@ class VFE(nn.Module):
         # No Linear bias: the norm's shift makes it redundant.
         self.point_mlp = nn.Sequential(nn.Linear(self.aug_ch, out_ch, bias=False), norm_layer, nn.ReLU())
 
-    def augment(self, features: Tensor, num_points: Tensor, coords: Tensor) -> tuple[Tensor, Tensor]:
-        """Gather the real points and augment them.
+    def augment(self, points: Tensor, voxel_id: Tensor, num_points: Tensor, coords: Tensor) -> Tensor:
+        """The MLP input of every point.
 
         Parameters
         ----------
-        features : (V, P, C) voxel points, lidar frame, padded after ``num_points[v]`` rows.
-        num_points : (V,) long, in [1, P].
+        points : (M, C) the voxelized points, lidar frame, grouped by voxel.
+        voxel_id : (M,) long, non-decreasing: the voxel (row of ``coords``) of each point.
+        num_points : (V,) long, points per voxel (>= 1), summing to M.
         coords : (V, 4) long voxel index (b, z, y, x).
 
         Returns
         -------
-        aug : (M, C + 6) augmented real points, voxel by voxel, slots in order.
-        voxel_id : (M,) long, the voxel of each row.
+        (M, C + 6) augmented points, in the order of ``points``.
         """
-        V, P, C = features.shape
+        M, C = points.shape
         if C != self.in_ch:
             raise ValueError(f"VFE expects {self.in_ch} channels per point, got {C}")
-        real = torch.arange(P, device=features.device) < num_points[:, None]  # (V, P)
-        voxel_id, slot = torch.nonzero(real, as_tuple=True)  # (M,) each
-        pts = features[voxel_id, slot]  # (M, C)
-        xyz = pts[:, :3]
-        n = num_points.to(pts.dtype)[:, None]  # (V, 1)
-        mean = pts.new_zeros((V, 3)).index_add_(0, voxel_id, xyz) / n  # (V, 3)
-        vs, lo = self.voxel_size.to(pts.dtype), self.origin.to(pts.dtype)
-        centre = (coords[:, [3, 2, 1]].to(pts.dtype) + 0.5) * vs + lo  # (V, 3) x, y, z
-        aug = torch.cat([pts, xyz - mean[voxel_id], xyz - centre[voxel_id]], dim=1)
-        return aug, voxel_id
+        xyz = points[:, :3]
+        mean = torch.segment_reduce(xyz, "mean", lengths=num_points)  # (V, 3)
+        vs, lo = self.voxel_size.to(points.dtype), self.origin.to(points.dtype)
+        centre = (coords[:, [3, 2, 1]].to(points.dtype) + 0.5) * vs + lo  # (V, 3) x, y, z
+        xyz_norm = (xyz - self.range_centre.to(points.dtype)) / self.range_half.to(points.dtype)
+        return torch.cat([xyz_norm, points[:, 3:], (xyz - mean[voxel_id]) / vs, (xyz - centre[voxel_id]) / vs], dim=1)
 
-    def forward(self, features: Tensor, num_points: Tensor, coords: Tensor) -> Tensor:
-        """(V, P, C) voxel points (lidar frame) -> (V, out_ch) voxel features.
-
-        ``num_points`` (V,) and ``coords`` (V, 4) (b, z, y, x) as in ``Voxels``.
-        """
-        aug, voxel_id = self.augment(features, num_points, coords)
-        h = self.point_mlp(aug)  # (M, out_ch), >= 0 after the ReLU
-        index = voxel_id[:, None].expand(-1, self.out_ch)
-        # include_self=False: the zeros are only storage, every voxel has >= 1 real point.
-        return h.new_zeros((features.shape[0], self.out_ch)).scatter_reduce(
-            0, index, h, reduce="amax", include_self=False
-        )
+    def forward(self, points: Tensor, voxel_id: Tensor, num_points: Tensor, coords: Tensor) -> Tensor:
+        """(M, C) points (lidar frame) grouped by voxel, as :func:`clfbev.ops.voxelize.voxelize`
+        gives them (``voxel_id`` (M,), ``num_points`` (V,), ``coords`` (V, 4)) -> (V, out_ch)
+        voxel features."""
+        h = self.point_mlp(self.augment(points, voxel_id, num_points, coords))  # (M, out_ch)
+        return torch.segment_reduce(h, "max", lengths=num_points)
 
 
 class SparseEncoder(nn.Module):
     """SECOND-style 3D sparse backbone ending in a z-compressed BEV map.
 
     Stage 0 works at the voxel resolution: ``blocks_per_stage`` SubM blocks, the first mapping
-    ``in_ch -> channels[0]``. Each later stage i first downsamples with a
-    ``SparseConv3d(k=3, stride=2, padding=1)`` (x, y and z halved) to ``channels[i]``, then runs
+    ``in_ch -> channels[0]``. Each later stage i first downsamples to ``channels[i]``, then runs
     ``blocks_per_stage`` SubM blocks. A block is conv -> BatchNorm1d (over active sites) -> ReLU.
+    Every downsampling halves z; the first log2(``xy_stride``) also halve x and y
+    (``SparseConv3d(k=3, stride=2, padding=1)``), the later ones halve z only
+    (``SparseConv3d(k=(3, 1, 1), stride=(2, 1, 1), padding=(1, 0, 0))``). A z-only step keeps the
+    BEV fine for the head (0.8 m cells from 0.4 m voxels) while the receptive field still grows
+    through the SubM blocks; its (3, 1, 1) kernel does not dilate the active sites in x and y as
+    a 3x3x3 kernel at stride 1 would (the number of sites, hence the cost, stays that of the
+    previous stage or less).
     Optionally (``z_out_conv``, as SECOND's ``conv_out``) a last ``SparseConv3d`` with kernel
     (3, 1, 1), stride (2, 1, 1), no padding shrinks z once more. Finally ``.dense()`` and the
     z axis is folded into the channels: (B, C, nz, ny, nx) -> (B, C * nz, ny, nx).
@@ -143,6 +141,8 @@ class SparseEncoder(nn.Module):
     grid_shape : (nz, ny, nx) of the voxel grid; fixes the BEV size and ``out_channels``.
     blocks_per_stage : SubM blocks per stage (>= 1).
     z_out_conv : add the final z-only downsampling conv.
+    xy_stride : the BEV's x/y stride over the voxel grid, a power of 2 up to
+        2 ** (len(channels) - 1) (the default: every downsampling halves x and y).
     """
 
     def __init__(
@@ -152,10 +152,16 @@ class SparseEncoder(nn.Module):
         grid_shape: Triple,
         blocks_per_stage: int = 1,
         z_out_conv: bool = True,
+        xy_stride: int | None = None,
     ) -> None:
         super().__init__()
         if len(channels) < 1 or blocks_per_stage < 1:
             raise ValueError("SparseEncoder needs >= 1 stage and >= 1 block per stage")
+        n_down = len(channels) - 1
+        xy_stride = 2**n_down if xy_stride is None else xy_stride
+        if xy_stride < 1 or xy_stride & (xy_stride - 1) or xy_stride > 2**n_down:
+            raise ValueError(f"SparseEncoder: xy_stride must be a power of 2 up to {2 ** n_down}, got {xy_stride}")
+        self.xy_stride = xy_stride
         self.in_ch, self.channels, self.grid_shape = in_ch, tuple(channels), tuple(grid_shape)
         # downs[i - 1] is the strided conv (and down_norms[i - 1] its BN) entering stage i >= 1.
         self.downs = nn.ModuleList()
@@ -164,7 +170,11 @@ class SparseEncoder(nn.Module):
         c_prev = in_ch
         for i, c in enumerate(channels):
             if i > 0:
-                self.downs.append(SparseConv3d(c_prev, c, 3, stride=2, padding=1, bias=False))
+                if 2**i <= xy_stride:
+                    down = SparseConv3d(c_prev, c, 3, stride=2, padding=1, bias=False)
+                else:
+                    down = SparseConv3d(c_prev, c, (3, 1, 1), stride=(2, 1, 1), padding=(1, 0, 0), bias=False)
+                self.downs.append(down)
                 self.down_norms.append(_bn(c))
                 c_prev = c
             stage = nn.ModuleList()
@@ -244,8 +254,8 @@ class LidarEncoder(nn.Module):
     channels : ``SparseEncoder`` stage channels.
     pc_range : (xmin, ymin, zmin, xmax, ymax, zmax) metres, lidar frame.
     voxel_size : (dx, dy, dz) metres.
-    max_points_per_voxel, max_voxels : hard voxelization caps (``max_voxels`` per sample).
-    blocks_per_stage, z_out_conv : see ``SparseEncoder``.
+    max_voxels : the dynamic voxelization's cap per sample (a memory bound).
+    blocks_per_stage, z_out_conv, xy_stride : see ``SparseEncoder``.
     vfe_norm : see ``VFE``.
     """
 
@@ -256,19 +266,19 @@ class LidarEncoder(nn.Module):
         channels: tuple[int, ...],
         pc_range: tuple[float, ...],
         voxel_size: tuple[float, float, float],
-        max_points_per_voxel: int,
         max_voxels: int,
         blocks_per_stage: int = 1,
         z_out_conv: bool = True,
         vfe_norm: str = "batch",
+        xy_stride: int | None = None,
     ) -> None:
         super().__init__()
         self.point_ch = point_ch
         self.pc_range, self.voxel_size = tuple(pc_range), tuple(voxel_size)
-        self.max_points_per_voxel, self.max_voxels = max_points_per_voxel, max_voxels
+        self.max_voxels = max_voxels
         self.grid_shape = grid_shape_of(self.pc_range, self.voxel_size)  # (nz, ny, nx)
         self.vfe = VFE(point_ch, vfe_ch, self.voxel_size, self.pc_range, norm=vfe_norm)
-        self.sparse = SparseEncoder(vfe_ch, channels, self.grid_shape, blocks_per_stage, z_out_conv)
+        self.sparse = SparseEncoder(vfe_ch, channels, self.grid_shape, blocks_per_stage, z_out_conv, xy_stride)
 
     @property
     def out_channels(self) -> int:
@@ -315,11 +325,11 @@ class LidarEncoder(nn.Module):
             batch_size = int(batch_idx.max()) + 1 if batch_idx.numel() else 1
         if points.ndim != 2 or points.shape[1] != self.point_ch:
             raise ValueError(f"points must be (N, {self.point_ch}), got {tuple(points.shape)}")
-        vox = voxelize(points, batch_idx, self.pc_range, self.voxel_size, self.max_points_per_voxel, self.max_voxels)
+        vox = voxelize(points, batch_idx, self.pc_range, self.voxel_size, self.max_voxels)
         if vox.coords.shape[0] == 0:
             # No point in range anywhere in the batch: the BEV is empty (BatchNorm cannot run on
             # zero rows in training mode, so short-cut it).
             ny, nx = self.out_size
             return points.new_zeros((batch_size, self.out_channels, ny, nx))
-        feats = self.vfe(vox.features, vox.num_points, vox.coords)  # (V, vfe_ch)
+        feats = self.vfe(points[vox.point_index], vox.voxel_id, vox.num_points, vox.coords)  # (V, vfe_ch)
         return self.sparse(SparseTensor(feats, vox.coords, vox.grid_shape, batch_size))

@@ -11,11 +11,14 @@ Variants (the paper's ablation ladder, each one adds one part to the previous):
 How MCM and the concat combine (``mcm``): the paper's MCM takes its queries from the lidar BEV
 (``q = W1 F_lidar + PE``) and its keys and values from the camera BEV, and "updates the BEV
 queries". So MCM is applied exactly so, ``F_lidar' = MCM(q = F_lidar, k = v = F_cam)`` (a
-post-norm transformer layer whose residual path keeps the lidar features), and the updated
+pre-norm transformer layer whose residual path carries the lidar features), and the updated
 lidar BEV replaces the lidar BEV in the baseline's fuser: ``ConvFuser(F_lidar', F_cam)``. The
 ``mcm`` variant thus differs from ``concat`` by the MCM step alone (what the ablation measures),
 and the query is never anything but the lidar BEV, as the paper says. Applying MCM to the
 ConvFuser output instead would make the queries partly camera features.
+
+At initialisation the fused variants are their lidar path exactly (see :mod:`clfbev.fusion`),
+and the camera branch learns depth from the lidar from the first step (:mod:`clfbev.depth`).
 
 Frames: everything is in the key-frame lidar frame; BEV maps are (B, C, ny, nx) with rows along
 y and columns along x over ``cfg.pc_range``. Predictions are boxes in that frame.
@@ -30,6 +33,7 @@ from clfbev.anchors import make_anchors, match_thresholds
 from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import VARIANTS, ModelConfig
 from clfbev.data import Batch
+from clfbev.depth import depth_loss, depth_targets
 from clfbev.fusion import BSM, MCM, ConvFuser
 from clfbev.head import AnchorHead, Detections, HeadOutput, assign_targets, decode, stack_targets
 from clfbev.lidar_encoder import LidarEncoder
@@ -113,7 +117,7 @@ class CLFusionBEV(nn.Module):
         if uses_lidar:
             self.lidar_encoder = LidarEncoder(
                 cfg.point_ch, cfg.vfe_ch, cfg.sparse_channels, cfg.pc_range, cfg.voxel_size,
-                cfg.max_points_per_voxel, cfg.max_voxels, cfg.sparse_blocks,
+                cfg.max_voxels, cfg.sparse_blocks, xy_stride=cfg.lidar_bev_stride,
             )
         if uses_camera:
             self.camera_encoder = CameraEncoder(
@@ -148,16 +152,26 @@ class CLFusionBEV(nn.Module):
 
     def bev_features(self, batch: Batch) -> Tensor:
         """The BEV map the backbone sees, (B, cfg.bev_channels_of(variant), ny, nx), lidar frame."""
-        lidar_bev = cam_bev = None
+        return self._bev_and_depth(batch)[0]
+
+    def _bev_and_depth(self, batch: Batch) -> tuple[Tensor, Tensor | None]:
+        """The backbone's BEV map and the camera's depth distribution (B, N, D, h, w), or None
+        for the lidar variant."""
+        lidar_bev = cam_bev = depth = None
         if self.lidar_encoder is not None:
             lidar_bev = self.lidar_encoder(batch.points)                      # (B, Cl, ny, nx)
         if self.camera_encoder is not None:
-            cam_bev = self.camera_encoder(batch.images, batch.intrinsics,
-                                          batch.T_lidar_from_cam, batch.img_aug)  # (B, Cc, ny, nx)
+            cam_bev, depth = self.camera_encoder.lift_splat(batch.images, batch.intrinsics,
+                                                            batch.T_lidar_from_cam, batch.img_aug)
         if self.variant == "lidar":
-            return lidar_bev
+            return lidar_bev, None
         if self.variant == "camera":
-            return cam_bev
+            return cam_bev, depth
+        return self.fuse(lidar_bev, cam_bev), depth
+
+    def fuse(self, lidar_bev: Tensor, cam_bev: Tensor) -> Tensor:
+        """MCM -> ConvFuser -> BSM, as the variant has them: (B, Cl, ny, nx), (B, Cc, ny, nx) ->
+        (B, fusion_dim, ny, nx)."""
         if self.mcm is not None:
             # MCM: lidar BEV queries attend to the camera BEV and are updated by it.
             lidar_bev = self.mcm(lidar_bev, cam_bev)                          # (B, dim, ny, nx)
@@ -175,18 +189,31 @@ class CLFusionBEV(nn.Module):
     # ------------------------------------------------------------------ training and inference
 
     def loss(self, batch: Batch) -> dict[str, Tensor]:
-        """Detection loss (paper eq. 9) of a batch; see :func:`clfbev.losses.detection_loss`.
+        """Detection loss (paper eq. 9) of a batch, see :func:`clfbev.losses.detection_loss`, plus
+        ``cfg.loss.depth`` times the camera's depth loss (:mod:`clfbev.depth`) for the variants
+        with a camera; ``loss_depth`` is reported whenever there is a camera.
 
         ``batch.gt_boxes`` are (M_i, 9) ``x, y, z, l, w, h, yaw, vx, vy`` in the lidar frame and
         ``batch.gt_labels`` (M_i,) indices into ``cfg.class_names``.
         """
-        out = self(batch)
+        cfg = self.cfg
+        bev, depth = self._bev_and_depth(batch)
+        out = self.head(self.backbone(bev))
         targets = stack_targets([
-            assign_targets(self.anchors, boxes[:, : self.cfg.code_size], labels, self.thresholds,
-                           n_dir_bins=self.cfg.n_dir_bins)
+            assign_targets(self.anchors, boxes[:, : cfg.code_size], labels, self.thresholds,
+                           n_dir_bins=cfg.n_dir_bins)
             for boxes, labels in zip(batch.gt_boxes, batch.gt_labels)
         ])
-        return detection_loss(out, targets, self.cfg.loss)
+        losses = detection_loss(out, targets, cfg.loss)
+        if depth is not None:
+            with torch.no_grad():
+                target_bins = depth_targets(batch.points, batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug,
+                                            cfg.image_size, cfg.feature_stride, cfg.depth_bins,
+                                            batch.pasted or None)
+            losses["loss_depth"] = depth_loss(depth, target_bins)
+            if cfg.loss.depth > 0:
+                losses["loss"] = losses["loss"] + cfg.loss.depth * losses["loss_depth"]
+        return losses
 
     @torch.no_grad()
     def predict(

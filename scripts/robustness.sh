@@ -48,7 +48,7 @@ train() {  # variant, run name, extra flags...
   if [ -f "$RUNS/$name/last.pt" ]; then resume=(--resume)     # continue (a no-op when finished)
   elif [ -f "$RUNS/$name/best.pt" ]; then return; fi           # a checkpoint given to reuse
   .venv/bin/clfbev train --data "$SETS/clean" --config tiny --variant "$variant" --out "$RUNS/$name" \
-    --epochs "$EPOCHS" --batch-size 2 --lr 1e-3 --seed 0 --threads "$(nproc)" --quiet "${resume[@]}" "$@"
+    --epochs "$EPOCHS" --seed 0 --threads "$(nproc)" --quiet "${resume[@]}" "$@"
 }
 for v in lidar camera concat mcm full; do train "$v" "$v"; done
 train full full_md --modality-dropout "$MODALITY_DROPOUT"

@@ -70,10 +70,11 @@ def test_length_and_batch_shapes(tiny_dataset, train):
         assert ((boxes[:, :3].numpy() >= lo) & (boxes[:, :3].numpy() < hi)).all()
         assert (boxes[:, 3:6] > 0).all() and labels.max() < len(train.cfg.class_names)
     assert batch.sample_tokens == train.sample_tokens[:2]
-    # Resize only: img_aug = diag(W/W0, H/H0, 1) for the dataset's image size.
+    # Resize to the network width keeping the aspect ratio, then crop the top rows to H.
     sd = nusc.get("sample_data", nusc.get("sample", batch.sample_tokens[0])["data"]["CAM_FRONT"])
-    A = torch.diag(torch.tensor([W / sd["width"], H / sd["height"], 1.0]))
-    assert torch.allclose(batch.img_aug[0, 1], A)
+    h1 = round(sd["height"] * W / sd["width"])
+    A = torch.tensor([[W / sd["width"], 0, 0], [0, h1 / sd["height"], H - h1], [0, 0, 1.0]])
+    assert h1 >= H and torch.allclose(batch.img_aug[0, 1], A)
     moved = batch.to("cpu")
     assert moved.images.device.type == "cpu" and torch.equal(moved.gt_boxes[1], batch.gt_boxes[1])
 

@@ -199,6 +199,18 @@ def test_attention_rejects_bad_args():
         MCM(8, 6, dim=16, heads=4)(torch.randn(1, 8, 4, 5), torch.randn(1, 6, 5, 4))
 
 
+def opened(module: torch.nn.Module, seed: int = 1) -> torch.nn.Module:
+    """The module as training leaves it: its zero-initialised gates (the attention's output
+    projection, the FFN's last layer, the ConvFuser's camera weights) set to random values, so
+    that the tests of what attention computes are not vacuous."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in module.named_parameters():
+            if not p.any():
+                p.copy_(torch.randn(p.shape, generator=g) * 0.3)
+    return module
+
+
 def _permute_cells(x: torch.Tensor, perm: torch.Tensor) -> torch.Tensor:
     """Permute the cells of (B, C, H, W) by a permutation of the H*W flat indices."""
     B, C, H, W = x.shape
@@ -210,7 +222,7 @@ def test_mcm_invariant_to_permuting_camera_cells(mode):
     # Keys/values carry no positional encoding, so global cross-attention sees the camera BEV
     # as a set: any spatial shuffle of it leaves every output cell unchanged.
     H, W = 5, 6
-    mcm = MCM(6, 10, dim=16, heads=4, mode=mode, pool_stride=1).eval()
+    mcm = opened(MCM(6, 10, dim=16, heads=4, mode=mode, pool_stride=1)).eval()
     lidar, cam = torch.randn(2, 6, H, W), torch.randn(2, 10, H, W)
     out = mcm(lidar, cam)
     out_perm = mcm(lidar, _permute_cells(cam, torch.randperm(H * W)))
@@ -221,7 +233,7 @@ def test_mcm_invariant_to_permuting_camera_cells(mode):
 
 def test_mcm_window_invariant_to_permuting_inside_windows_only():
     H, W, w = 6, 5, 3  # windows: rows {0-2, 3-5} x cols {0-2, 3-4}
-    mcm = MCM(6, 10, dim=16, heads=4, mode="window", window=w).eval()
+    mcm = opened(MCM(6, 10, dim=16, heads=4, mode="window", window=w)).eval()
     lidar, cam = torch.randn(2, 6, H, W), torch.randn(2, 10, H, W)
     out = mcm(lidar, cam)
     window_id = (torch.arange(H)[:, None] // w * 10 + torch.arange(W)[None, :] // w).reshape(-1)
@@ -239,7 +251,7 @@ def test_mcm_window_invariant_to_permuting_inside_windows_only():
 def test_bsm_window_locality():
     # LN and FFN act per cell, so a window's BSM output depends only on that window's input.
     H, W, w = 7, 5, 4
-    bsm = BSM(16, heads=4, mode="window", window=w).eval()
+    bsm = opened(BSM(16, heads=4, mode="window", window=w)).eval()
     x = torch.randn(2, 16, H, W)
     x2 = x.clone()
     x2[:, :, 4:] += torch.randn(2, 16, 3, W)  # rows 4..6 are other windows
@@ -273,9 +285,9 @@ def test_gradients_reach_every_parameter(mode):
     B, H, W = 2, 6, 7
     lidar = torch.randn(B, 8, H, W, requires_grad=True)
     cam = torch.randn(B, 12, H, W, requires_grad=True)
-    mcm = MCM(8, 12, dim=16, heads=4, mode=mode, window=4, pool_stride=2)
-    bsm = BSM(16, heads=4, mode=mode, window=4, pool_stride=2)
-    fuser = ConvFuser(8, 12, 16)
+    mcm = opened(MCM(8, 12, dim=16, heads=4, mode=mode, window=4, pool_stride=2))
+    bsm = opened(BSM(16, heads=4, mode=mode, window=4, pool_stride=2))
+    fuser = opened(ConvFuser(8, 12, 16))
     out = bsm(mcm(lidar, cam)) + fuser(lidar, cam)
     # Random weights: a plain sum would give LayerNorm's input zero gradient (its output sums to
     # a constant), hiding missing paths.
@@ -283,3 +295,42 @@ def test_gradients_reach_every_parameter(mode):
     for m in (mcm, bsm, fuser):
         _assert_all_grads(m)
     assert cam.grad.abs().max() > 0 and lidar.grad.abs().max() > 0
+
+
+# ----------------------------------------------------------------------------- identity at init
+
+
+@pytest.mark.parametrize("mode", ["exact", "window", "pooled"])
+def test_mcm_and_bsm_start_as_the_identity(mode):
+    """At initialisation MCM passes the lidar BEV through (W1 = identity, zero output gates) and
+    BSM its input, exactly, whatever the camera BEV holds; the gates still get gradients."""
+    B, H, W = 2, 6, 7
+    lidar, cam = torch.randn(B, 16, H, W), torch.randn(B, 12, H, W)
+    mcm = MCM(16, 12, dim=16, heads=4, mode=mode, window=4, pool_stride=2)
+    bsm = BSM(16, heads=4, mode=mode, window=4, pool_stride=2)
+    assert torch.equal(mcm(lidar, cam), lidar)
+    assert torch.equal(mcm(lidar, torch.randn_like(cam) * 100), lidar)
+    assert torch.equal(bsm(lidar), lidar)
+    (mcm(lidar, cam) * torch.randn(B, 16, H, W)).sum().backward()
+    assert mcm.out_proj.weight.grad.abs().max() > 0
+
+
+def test_convfuser_starts_blind_to_the_camera():
+    lidar, cam = torch.randn(2, 8, 5, 6), torch.randn(2, 12, 5, 6)
+    fuser = ConvFuser(8, 12, 16)
+    out = fuser(lidar, cam)
+    assert torch.equal(fuser(lidar, torch.randn_like(cam) * 100), out)
+    # And it is a concat + conv: the same as one conv over [lidar, cam] with the stacked weights.
+    opened(fuser).eval()
+    w = torch.cat([fuser.conv_lidar.weight, fuser.conv_cam.weight], dim=1)
+    ref = torch.relu(fuser.bn(F.conv2d(torch.cat([lidar, cam], 1), w, padding=1)))
+    torch.testing.assert_close(fuser(lidar, cam), ref, atol=1e-5, rtol=0)
+
+
+def test_positional_encoding_does_not_dominate_the_query():
+    """The query content is layer-normalised (RMS 1); the encoding starts at RMS PE_INIT_RMS."""
+    from clfbev.fusion import PE_INIT_RMS
+    mcm = MCM(16, 12, dim=16, heads=4)
+    pe = mcm.pos(40, 40, torch.zeros(1))
+    torch.testing.assert_close(pe.pow(2).mean().sqrt(), torch.tensor(PE_INIT_RMS), atol=0.02, rtol=0)
+    assert PE_INIT_RMS < 1.0

@@ -6,9 +6,8 @@ The batch: B = 1, six cameras at the lidar origin looking out horizontally every
 resized to the network's image size, ~5000 lidar-like points (a ground plane at z = -1.84 plus
 points on the three GT boxes: a car, a pedestrian and a bicycle).
 
-Timing (2-core shared CPU, 1 thread): a tiny 'full' training step (forward, loss, backward,
-AdamW) takes about 0.65-0.95 s per sample (1.0 M parameters); the whole file (not slow) about
-20 s. The slow paper forward (51.4 M parameters, 6 x 640 x 1600 images, 30k points) takes about
+The training step's speed is measured by ``scripts/bench.py`` (``train_tiny_samples_per_s``),
+not asserted here: a shared machine's timings are noise to a test. The slow paper forward (51.4 M parameters, 6 x 640 x 1600 images, 30k points) takes about
 70 s with a peak RSS of about 2.8 GB.
 """
 
@@ -138,23 +137,6 @@ def test_variant_trains_and_predicts(variant):
     assert torch.isfinite(dets[0].boxes).all()
 
 
-def test_tiny_full_step_time():
-    torch.manual_seed(0)
-    cfg = tiny()
-    model = CLFusionBEV(cfg, "full")
-    batch = make_batch(cfg)
-    opt = torch.optim.AdamW(model.parameters(), lr=2e-4, weight_decay=1e-2)
-    train_step(model, batch, opt)  # warm-up: first-call allocations
-    times = []
-    for _ in range(3):
-        t = time.perf_counter()
-        train_step(model, batch, opt)
-        times.append(time.perf_counter() - t)
-    print(f"\ntiny full: {count_parameters(model):,} parameters, "
-          f"train step {min(times):.3f} s per sample (min of 3; all {[round(t, 3) for t in times]})")
-    assert min(times) < 3.0   # target < 1 s; loose so a busy shared machine does not fail it
-
-
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_derived_sizes_match_real_shapes(variant):
     cfg = tiny()
@@ -184,8 +166,26 @@ def test_derived_sizes_match_real_shapes(variant):
 def test_camera_bev_matches_lidar_bev_for_presets():
     for cfg in (tiny(), paper(), replace(tiny(), voxel_size=(0.2, 0.4, 0.4), sparse_channels=(16, 32))):
         assert cfg.cam_bev_shape == cfg.lidar_bev_shape
-    assert tiny().lidar_bev_shape == (64, 64) and tiny().cam_bev_voxel[:2] == (1.6, 1.6)
+    assert tiny().lidar_bev_shape == (128, 128) and tiny().cam_bev_voxel[:2] == (0.8, 0.8)
     assert paper().lidar_bev_shape == (180, 180) and paper().lidar_grid_shape == (40, 1440, 1440)
+
+
+@pytest.mark.parametrize("variant", ["concat", "mcm", "full"])
+def test_fused_bev_is_the_lidar_path_at_initialisation(variant):
+    """Whatever the camera BEV holds, the fused BEV of a fresh model is exactly
+    ReLU(BN(conv_lidar(F_lidar))): MCM and BSM pass through, the fuser's camera weights are 0."""
+    cfg = tiny()
+    torch.manual_seed(0)
+    model = CLFusionBEV(cfg, variant).eval()
+    g = torch.Generator().manual_seed(1)
+    lidar = torch.relu(torch.randn(2, cfg.lidar_bev_channels, *cfg.lidar_bev_shape, generator=g))
+    cams = [torch.randn(2, cfg.cam_bev_channels, *cfg.cam_bev_shape, generator=g) * s for s in (1.0, 30.0)]
+    with torch.no_grad():
+        fused = [model.fuse(lidar, cam) for cam in cams]
+        f = model.fuser
+        expected = f.act(f.bn(f.conv_lidar(lidar)))
+    assert torch.equal(fused[0], fused[1])
+    assert torch.equal(fused[0], expected)
 
 
 def test_load_config(tmp_path):

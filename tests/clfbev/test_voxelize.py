@@ -1,4 +1,4 @@
-"""Hard voxelization vs a brute-force numpy reference."""
+"""Dynamic voxelization vs a brute-force numpy reference."""
 
 import numpy as np
 import pytest
@@ -45,8 +45,8 @@ def reference_voxels(points, batch_idx):
     return vox
 
 
-def check_against_reference(points, batch_idx, P, max_voxels):
-    v = voxelize(points, batch_idx, PC_RANGE, VOXEL, P, max_voxels)
+def check_against_reference(points, batch_idx, max_voxels):
+    v = voxelize(points, batch_idx, PC_RANGE, VOXEL, max_voxels)
     assert v.grid_shape == GRID
     ref = reference_voxels(points, batch_idx)
     # Expected order: by sample, then by first appearance; first max_voxels per sample.
@@ -54,33 +54,25 @@ def check_against_reference(points, batch_idx, P, max_voxels):
     for b in sorted({k[0] for k in ref}):
         expected += [k for k in ref if k[0] == b][:max_voxels]
     assert [tuple(c) for c in v.coords.tolist()] == expected
-    for row, key in enumerate(expected):
-        idx = ref[key][:P]
-        assert v.num_points[row] == len(idx)
-        assert torch.equal(v.features[row, : len(idx)], points[idx])
-        assert not v.features[row, len(idx):].any()
+    # Every point of a kept voxel, grouped voxel by voxel, in input order inside each voxel.
+    assert v.point_index.tolist() == [i for key in expected for i in ref[key]]
+    assert v.voxel_id.tolist() == [row for row, key in enumerate(expected) for _ in ref[key]]
+    assert v.num_points.tolist() == [len(ref[key]) for key in expected]
     return v, ref
 
 
-def test_exact_contents_without_caps():
-    points, batch_idx = random_points()
-    v, ref = check_against_reference(points, batch_idx, P=100, max_voxels=10_000)
-    assert v.features.shape == (len(ref), 100, 4)
-    assert max(len(i) for i in ref.values()) < 100  # so nothing was capped
-    assert int(v.num_points.sum()) == sum(len(i) for i in ref.values())
+def test_every_point_in_range_is_kept():
+    points, batch_idx = random_points(n=6000)
+    v, ref = check_against_reference(points, batch_idx, max_voxels=10_000)
+    assert v.point_index.numel() == sum(len(i) for i in ref.values())
+    assert max(len(i) for i in ref.values()) > 10  # voxels above the old 10-point cap
     assert v.coords.dtype == torch.long and v.num_points.dtype == torch.long
-
-
-def test_max_points_cap_keeps_first_points():
-    points, batch_idx = random_points(seed=1)
-    v, ref = check_against_reference(points, batch_idx, P=3, max_voxels=10_000)
-    assert v.features.shape[1] == 3
-    assert max(len(i) for i in ref.values()) > 3  # the cap was actually exercised
+    assert (torch.diff(v.voxel_id) >= 0).all()
 
 
 def test_max_voxels_cap_is_per_sample():
     points, batch_idx = random_points(seed=2)
-    v, ref = check_against_reference(points, batch_idx, P=5, max_voxels=7)
+    v, ref = check_against_reference(points, batch_idx, max_voxels=7)
     assert torch.equal(torch.bincount(v.coords[:, 0]), torch.tensor([7, 7]))
 
 
@@ -96,29 +88,29 @@ def test_out_of_range_dropped_and_coords_order():
             [0.0, 0.0, 1.0, 6.0],  # z at the upper bound: dropped
         ]
     )
-    v = voxelize(pts, torch.tensor([1, 0, 1, 0, 0, 1]), PC_RANGE, VOXEL, 4, 100)
+    v = voxelize(pts, torch.tensor([1, 0, 1, 0, 0, 1]), PC_RANGE, VOXEL, 100)
     # Sample 0 first, then sample 1 in order of appearance.
     assert v.coords.tolist() == [[0, 3, 7, 7], [1, 0, 0, 0], [1, 2, 5, 4]]
     assert v.num_points.tolist() == [1, 1, 1]
-    assert v.features[:, 0, 3].tolist() == [2.0, 1.0, 3.0]
+    assert pts[v.point_index, 3].tolist() == [2.0, 1.0, 3.0]
 
 
 def test_empty_and_all_outside():
     pts = torch.tensor([[10.0, 0.0, 0.0, 1.0]])
-    v = voxelize(pts, torch.zeros(1, dtype=torch.long), PC_RANGE, VOXEL, 4, 100)
-    assert v.features.shape == (0, 4, 4) and v.coords.shape == (0, 4) and v.num_points.shape == (0,)
+    v = voxelize(pts, torch.zeros(1, dtype=torch.long), PC_RANGE, VOXEL, 100)
+    assert v.point_index.shape == (0,) and v.coords.shape == (0, 4) and v.num_points.shape == (0,)
 
 
-def test_deterministic_and_order_invariant_counts():
+def test_deterministic_and_order_invariant_voxels():
     points, batch_idx = random_points(seed=3)
-    a = voxelize(points, batch_idx, PC_RANGE, VOXEL, 4, 20)
-    b = voxelize(points.clone(), batch_idx.clone(), PC_RANGE, VOXEL, 4, 20)
-    for x, y in [(a.features, b.features), (a.coords, b.coords), (a.num_points, b.num_points)]:
+    a = voxelize(points, batch_idx, PC_RANGE, VOXEL, 20)
+    b = voxelize(points.clone(), batch_idx.clone(), PC_RANGE, VOXEL, 20)
+    for x, y in [(a.point_index, b.point_index), (a.coords, b.coords), (a.num_points, b.num_points)]:
         assert torch.equal(x, y)
-    # Without caps, shuffling the points changes the order but not the voxels or their counts.
+    # Without the cap, shuffling the points changes the order but not the voxels or their counts.
     perm = torch.randperm(len(points), generator=torch.Generator().manual_seed(0))
-    c = voxelize(points, batch_idx, PC_RANGE, VOXEL, 100, 10_000)
-    d = voxelize(points[perm], batch_idx[perm], PC_RANGE, VOXEL, 100, 10_000)
+    c = voxelize(points, batch_idx, PC_RANGE, VOXEL, 10_000)
+    d = voxelize(points[perm], batch_idx[perm], PC_RANGE, VOXEL, 10_000)
     as_dict = lambda v: dict(zip(map(tuple, v.coords.tolist()), v.num_points.tolist()))  # noqa: E731
     assert as_dict(c) == as_dict(d)
 
@@ -126,7 +118,7 @@ def test_deterministic_and_order_invariant_counts():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_matches_cpu():
     points, batch_idx = random_points(seed=4)
-    a = voxelize(points, batch_idx, PC_RANGE, VOXEL, 3, 20)
-    g = voxelize(points.to("cuda"), batch_idx.to("cuda"), PC_RANGE, VOXEL, 3, 20)
-    assert torch.equal(a.features, g.features.cpu()) and torch.equal(a.coords, g.coords.cpu())
+    a = voxelize(points, batch_idx, PC_RANGE, VOXEL, 20)
+    g = voxelize(points.to("cuda"), batch_idx.to("cuda"), PC_RANGE, VOXEL, 20)
+    assert torch.equal(a.point_index, g.point_index.cpu()) and torch.equal(a.coords, g.coords.cpu())
     assert torch.equal(a.num_points, g.num_points.cpu())

@@ -1,0 +1,104 @@
+"""Depth supervision of the camera branch from the lidar (BEVDepth, Li et al. 2023).
+
+A lift-splat camera trained only through the detection loss has to discover depth from a few
+thousand boxes, and on small data it does not (BEVDepth's ablation; BEVDet reports +4.7 mAP
+from the depth loss). The lidar measures the depth of every pixel it hits, so:
+
+1. project the key-frame lidar points into each camera through the same intrinsics,
+   extrinsics and image augmentation that lift-splat uses (``img_aug @ K @ T_cam_from_lidar``),
+   so that a target cell is exactly the feature cell whose frustum the point lies in;
+2. per feature cell (stride s: cell (i, j) covers augmented pixels [j s, (j + 1) s) x
+   [i s, (i + 1) s)) keep the NEAREST depth (the surface the cell sees, not what is behind it),
+   as the bin of :mod:`clfbev.camera_encoder` (``floor((z - d_min) / step)``, camera z);
+3. a binary cross-entropy between the predicted depth distribution and the one-hot bin,
+   summed over bins and averaged over the cells that have a target (cells without a point,
+   and depths outside the bins, are ignored).
+
+Only key-frame points (time lag 0) are used: the earlier sweeps are motion-compensated for the
+ego but not for moving objects. Points pasted by GT-paste are excluded: they have no pixels.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def depth_targets(
+    points: list[Tensor],
+    intrinsics: Tensor,
+    T_lidar_from_cam: Tensor,
+    img_aug: Tensor,
+    image_size: tuple[int, int],
+    feature_stride: int,
+    depth_bins: tuple[float, float, float],
+    ignore: list[Tensor | None] | None = None,
+) -> Tensor:
+    """Nearest-lidar depth bin of every camera feature cell.
+
+    Parameters
+    ----------
+    points : B tensors (n_i, >= 5) x, y, z, intensity, time lag; key-frame lidar frame.
+    intrinsics : (B, N, 3, 3) K of the original images.
+    T_lidar_from_cam : (B, N, 4, 4) camera -> lidar.
+    img_aug : (B, N, 3, 3) original -> network pixels.
+    image_size : (H, W) of the network images; feature map (H / s, W / s).
+    feature_stride : s.
+    depth_bins : (d_min, d_max, d_step) of camera z.
+    ignore : optional B masks (n_i,) of points to leave out (pasted objects), or None entries.
+
+    Returns
+    -------
+    (B, N, H / s, W / s) int64 bin index, -1 where the cell has no target.
+    """
+    B, N = intrinsics.shape[:2]
+    H, W = image_size
+    h, w = H // feature_stride, W // feature_stride
+    d_min, d_max, d_step = (float(v) for v in depth_bins)
+    n_bins = int(round((d_max - d_min) / d_step))
+    device = intrinsics.device
+    # P = A K [R | t]_cam_from_lidar, per camera; float64 keeps pixels exact far from the centre.
+    T_cam_from_lidar = torch.linalg.inv(T_lidar_from_cam.double())
+    P = img_aug.double() @ intrinsics.double() @ T_cam_from_lidar[..., :3, :]  # (B, N, 3, 4)
+    depth = torch.full((B, N * h * w), float("inf"), dtype=torch.float64, device=device)
+    for b in range(B):                      # a loop over the batch; each sample is vectorised
+        keep = points[b][:, 4] == 0
+        if ignore is not None and ignore[b] is not None:
+            keep &= ~ignore[b]
+        xyz1 = F.pad(points[b][keep, :3].double(), (0, 1), value=1.0)  # (n, 4)
+        uvz = torch.einsum("nij,pj->npi", P[b], xyz1)                   # (N, n, 3)
+        z = uvz[..., 2]
+        u, v = uvz[..., 0] / z, uvz[..., 1] / z
+        cols, rows = torch.floor(u / feature_stride).long(), torch.floor(v / feature_stride).long()
+        ok = (z > d_min) & (z < d_min + n_bins * d_step) & (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+        cam = torch.arange(N, device=device)[:, None].expand_as(z)
+        cell = (cam * h + rows) * w + cols
+        depth[b].scatter_reduce_(0, cell[ok], z[ok], reduce="amin")
+    bins = torch.floor((depth - d_min) / d_step)
+    return torch.where(torch.isfinite(depth), bins, -1.0).long().view(B, N, h, w)
+
+
+def depth_loss(depth_probs: Tensor, targets: Tensor) -> Tensor:
+    """BEVDepth's loss: BCE of the predicted distribution against the one-hot target bin,
+    summed over bins, averaged over the cells with a target.
+
+    Parameters
+    ----------
+    depth_probs : (B, N, D, h, w) softmax over D bins.
+    targets : (B, N, h, w) int64 bin, -1 = no target.
+
+    Returns
+    -------
+    () float32 loss (0 when no cell has a target).
+    """
+    D = depth_probs.shape[2]
+    probs = depth_probs.permute(0, 1, 3, 4, 2).reshape(-1, D)
+    t = targets.reshape(-1)
+    fg = t >= 0
+    # BCE on probabilities is not autocast-safe: always in float32.
+    with torch.autocast(device_type=probs.device.type, enabled=False):
+        p = probs[fg].float()
+        onehot = F.one_hot(t[fg], D).float()
+        total = F.binary_cross_entropy(p, onehot, reduction="sum")
+    return total / max(1, int(fg.sum()))
