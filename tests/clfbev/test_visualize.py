@@ -23,7 +23,7 @@ from clfbev.config import tiny
 from clfbev.data import Batch
 from clfbev.head import Detections
 from clfbev.model import CLFusionBEV
-from clfbev.visualize import (MASS, MIN_ZOOM_CELLS, AttentionMap, BEVScene, Query, attention_maps,
+from clfbev.visualize import (MASS, MIN_ZOOM_CELLS, AttentionMap, BEVScene, Query, _split_block, attention_maps,
                               attention_strip, cell_of, choose_query, shown_mass, zoom_extent)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -190,6 +190,18 @@ def _scene():
 def _inked(img: np.ndarray) -> float:
     """Share of the image's pixels that are not the strip's plain background."""
     return float((np.abs(img.astype(int) - 20).max(-1) > 12).mean())
+
+
+@pytest.mark.parametrize("width,height,n", [(838, 460, 5), (838, 460, 4), (1828, 680, 5), (1828, 680, 9),
+                                            (500, 300, 1), (838, 460, 0)])
+def test_block_layout_keeps_every_panel_inside_and_apart(width, height, n):
+    main, grid = _split_block(width, height, n)
+    assert len(grid) == n and 0.5 * min(width, height) <= main <= min(width, height)
+    rects = [(0, 0, main, main)] + [(left, top - 16, side, side + 16) for top, left, side in grid]   # with titles
+    for i, (x, y, w, h) in enumerate(rects):
+        assert x >= 0 and y >= 0 and x + w <= width + 1e-6 and y + h <= height + 1e-6 and w > 50
+        for x2, y2, w2, h2 in rects[i + 1:]:
+            assert x + w <= x2 or x2 + w2 <= x or y + h <= y2 or y2 + h2 <= y        # no overlap
 
 
 def test_strip_puts_the_modules_side_by_side_leaving_no_half_empty():
