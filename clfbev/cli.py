@@ -3,7 +3,7 @@
     clfbev train   --data DIR --config tiny --variant full --out RUN [--epochs N | --max-steps N] [--resume]
     clfbev eval    --data DIR --ckpt RUN/best.pt [--split sim-val] --out DIR
     clfbev predict --data DIR --ckpt CKPT --out results.json [--split all]
-    clfbev show    --data DIR --results results.json [--sample I] --out FILE.png [--attention --ckpt CKPT]
+    clfbev show    --data DIR --results results.json [--sample I] --out FILE.png [--attention --ckpt CKPT [--cell X,Y]]
     clfbev robustness --ckpt NAME=CKPT ... --set NAME=DATAROOT ... [--corrupt NAME:SEV ...] --out DIR
 
 Bad input (a missing dataroot, an unknown split, a corrupt or mismatched checkpoint, an invalid
@@ -138,10 +138,11 @@ def cmd_predict(args) -> None:
 def cmd_show(args) -> None:
     import cv2
     import numpy as np
-    from clfbev.data import DataError, NuScenesDetection, collate, load_nuscenes
-    from clfbev.visualize import attention_maps, attention_panel, cell_of, load_results, sample_sheet
+    from clfbev.data import DataError, load_nuscenes
+    from clfbev.visualize import load_results, sample_sheet
 
     check_writable(args.out, is_file=True)
+    model = _attention_model(args) if args.attention else None   # a bad checkpoint fails before any drawing
     results = load_results(args.results)
     nusc = load_nuscenes(args.data, args.version)
     tokens = [t for t in (s["token"] for s in nusc.sample) if t in results]
@@ -151,23 +152,8 @@ def cmd_show(args) -> None:
         raise ValueError(f"--sample {args.sample}: {args.results} covers {len(tokens)} samples (0..{len(tokens) - 1})")
     token = tokens[args.sample]
     sheet = sample_sheet(nusc, token, results[token], args.score_thr)
-    if args.attention:
-        if not args.ckpt:
-            raise ValueError("--attention needs --ckpt (the model whose attention is drawn)")
-        model, _ = _load(args)
-        ds = NuScenesDetection(args.data, args.version, "all", model.cfg.data_config())
-        batch = collate([ds[ds.sample_tokens.index(token)]]).to(_device())
-        if args.cell:
-            xy = tuple(float(v) for v in args.cell.split(","))
-        else:   # the best-scoring prediction, in the lidar frame
-            T = batch.T_global_from_lidar[0].cpu().numpy()
-            best = max(results[token], key=lambda r: r["detection_score"], default=None)
-            xy = (0.0, 10.0) if best is None else tuple((np.linalg.inv(T) @ np.r_[best["translation"], 1.0])[:2])
-        cell = cell_of(xy, model.cfg.pc_range, model.cfg.head_feature_size)
-        maps = attention_maps(model, batch, cell)
-        panel = attention_panel(maps, batch.points[0].cpu().numpy(), cell, model.cfg.pc_range, sheet.shape[0])
-        pad = np.zeros((panel.shape[0], max(0, sheet.shape[1] - panel.shape[1]), 3), np.uint8)
-        sheet = np.concatenate([sheet, np.concatenate([panel, pad], 1)[:, : sheet.shape[1]]], 0)
+    if model is not None:
+        sheet = np.concatenate([sheet, _attention_strip(args, model, token, sheet.shape[1])], 0)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.stem}.tmp{out.suffix}")
@@ -175,6 +161,37 @@ def cmd_show(args) -> None:
         raise ValueError(f"--out {out}: cannot write an image with that extension")
     tmp.replace(out)
     print(f"wrote {out}")
+
+
+def _attention_model(args):
+    """The model of --ckpt; ValueError (exit 2) if there is none or it has no attention module:
+    --attention asks for a picture that such a variant cannot give, so it is refused, not skipped."""
+    from clfbev.visualize import attention_modules
+    if not args.ckpt:
+        raise ValueError("--attention needs --ckpt (the model whose attention is drawn)")
+    model, _ = _load(args)
+    if not attention_modules(model):
+        raise ValueError(f"--attention: {args.ckpt} is of variant '{model.variant}', which has no MCM or BSM "
+                         "attention (the 'mcm' and 'full' variants have)")
+    return model
+
+
+def _attention_strip(args, model, token: str, width: int):
+    """The MCM / BSM attention strip of sample ``token``, ``width`` pixels wide (BGR)."""
+    from clfbev.data import NuScenesDetection, collate
+    from clfbev.visualize import draw_attention
+    ds = NuScenesDetection(args.data, args.version, "all", model.cfg.data_config())
+    batch = collate([ds[ds.sample_tokens.index(token)]]).to(_device())
+    return draw_attention(model, batch, width, args.score_thr, args.cell)
+
+
+def _xy(text: str) -> tuple[float, float]:
+    """'X,Y' metres -> (x, y); an argparse type, so a malformed value exits 2 naming it."""
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in metres (e.g. 10,-5), got {text!r}") from None
+    return x, y
 
 
 # ---------------------------------------------------------------- parser
@@ -255,13 +272,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("show", help="cameras + BEV with predictions and GT (and attention maps) as a PNG",
                        description="Draw one sample: the six cameras and a BEV, GT in green and predictions in "
-                       "orange. --attention adds the MCM and BSM attention of one BEV cell (needs --ckpt).")
+                       "orange. --attention adds, below, the MCM and BSM attention of one BEV query cell "
+                       "(needs --ckpt of an 'mcm' or 'full' model; other variants exit 2): the cell under the "
+                       "centre of that model's best detection scoring at least --score-thr, else under the GT "
+                       "box nearest the ego, or --cell. Each panel zooms on the weights (window mode: the "
+                       "query's window) and shows the mean over heads and each head.")
     model_args(p, ckpt_required=False)
     p.add_argument("--results", required=True, type=Path, help="results JSON (from eval or predict)")
     p.add_argument("--sample", type=int, default=0, help="index among the samples the results cover")
     p.add_argument("--score-thr", type=float, default=0.3, help="draw predictions scoring at least this")
-    p.add_argument("--attention", action="store_true", help="add MCM / BSM attention maps (mcm / full variants)")
-    p.add_argument("--cell", default=None, help="query 'x,y' in metres, lidar frame (default: best prediction)")
+    p.add_argument("--attention", action="store_true", help="add the MCM / BSM attention of a query cell "
+                   "(mcm / full variants)")
+    p.add_argument("--cell", default=None, type=_xy, metavar="X,Y",
+                   help="query point in metres, lidar frame (default: the best detection's centre)")
     p.add_argument("--out", required=True, type=Path, help="PNG path")
     p.set_defaults(fn=cmd_show)
     return ap
