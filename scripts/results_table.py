@@ -116,14 +116,15 @@ def mean_half_range(values: list[float]) -> tuple[float, float]:
 
 
 def recipe_of(info: dict) -> dict:
-    """The settings of a run that must agree across the table: all but the seed and bookkeeping."""
-    train = {k: v for k, v in info["train"].items() if k not in ("seed", *BOOKKEEPING)}
+    """The settings of a run that must agree across the table: all but the seed, the bookkeeping
+    and, when --max-steps sets the length, the unused epoch count."""
+    unused = ("seed", *BOOKKEEPING, *(("epochs",) if info["train"].get("max_steps") else ()))
+    train = {k: v for k, v in info["train"].items() if k not in unused}
     return {"config_name": config_name(info.get("argv", [])), "config": info["config"], "train": train}
 
 
 def describe_train(train: dict) -> str:
-    shown = {k: v for k, v in train.items() if not (k == "epochs" and train.get("max_steps"))}
-    return ", ".join(f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in shown.items())
+    return ", ".join(f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in train.items())
 
 
 # ---------------------------------------------------------------- the document
@@ -170,7 +171,7 @@ def render(out: Path, run_names: list[str], now: float | None = None) -> str:
                      "`last.pt`, the weights after the last step.")
         differ = []
         for name, rec in recipes.items():
-            keys = [k for k in rec["train"] if rec["train"][k] != first["train"].get(k)]
+            keys = [k for k in {**first["train"], **rec["train"]} if rec["train"].get(k) != first["train"].get(k)]
             keys += ["model config"] if rec["config"] != first["config"] or rec["config_name"] != first["config_name"] else []
             if keys:
                 differ.append(f"`{name}` ({', '.join(keys)})")

@@ -165,10 +165,13 @@ def test_seed_spread_is_mean_half_range_and_range(bench):
 def test_a_run_with_another_recipe_is_flagged(bench):
     add_run(bench, "lidar_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)))
     add_run(bench, "full_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"lr": 0.002}, code="def5678")
-    add_run(bench, "concat_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"ckpt_minutes": 3.0})
+    # Bookkeeping, and the epoch count that --max-steps overrides, do not change a result.
+    add_run(bench, "concat_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"ckpt_minutes": 3.0, "epochs": 12})
+    add_run(bench, "mcm_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"gt_paste_fade": 0.2})
     setup = section(render(bench), "Setup")
-    assert "**Not one recipe:**" in setup and "`full_s0` (lr)" in setup
-    assert "concat_s0" not in setup.split("**Not one recipe:**")[1].split("\n")[0]   # bookkeeping only
+    flagged = setup.split("**Not one recipe:**")[1].split("\n")[0]
+    assert "`full_s0` (lr)" in flagged and "`mcm_s0` (gt_paste_fade)" in flagged   # a field only one run has
+    assert "concat_s0" not in flagged and "lidar_s0`:" in flagged
     assert "`full_s0` `def5678`" in setup
 
 
