@@ -5,7 +5,7 @@
 #   bash scripts/benchmark.sh                  # all five variants; lidar and full with 2 seeds
 #   bash scripts/benchmark.sh lidar full       # only these variants (all their seeds)
 #   bash scripts/benchmark.sh --list [VARIANT...]   # the runs and their state; runs nothing
-#   SCENES=3 SAMPLES=3 STEPS=4 RES=352x198 OUT=benchmark_out/smoke RESULTS=smoke.md \
+#   SCENES=3 SAMPLES=3 STEPS=4 RES=352x198 OUT=benchmark_out/smoke RESULTS=benchmark_out/smoke/results.md \
 #     bash scripts/benchmark.sh lidar full     # a smoke test of the whole chain
 # Everything resumes: rerun the same command after an interruption (even kill -9). A run with an
 # evaluation is skipped, a trained run is only evaluated, a partial training continues from its
@@ -14,16 +14,17 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 # The knobs. The defaults are the benchmark: change them only for a smoke test, into another OUT.
-# STEPS is the one step budget shared by every variant. It is sized for the slowest variant, full,
-# on the 2-core development machine with the cores to itself: the demo trains it at about 1.7
-# samples/s (1.2 s per step of the batch of 2, validation passes excluded), so 1500 steps are about
-# 30 min, plus a few minutes to start (the GT-paste database reads the training split once) and
-# about 3 min to evaluate: within 45 min with a margin for the recipe's costlier steps. Other
-# load on the cores stretches this many times over.
+# STEPS is the one step budget shared by every variant, sized for the slowest one, full, on the
+# 2-core development machine. Measured with the tiny recipe (GT-paste on) at 704x396: 2.45 CPU
+# seconds per step of 2 samples on one thread (CPU time, which other load on the cores hardly
+# stretch). With both threads, at a speed-up of about 1.4, that is 1.75 s per step: 1200 steps
+# are 35 min, plus about 3 min to start (the GT-paste database reads the training split once)
+# and about 4 min to evaluate 160 samples, within 45 min. Other load on the cores stretches all
+# of this; the table reports the wall time each run took.
 SCENES=${SCENES:-40}            # urban scenes; the last 20% are sim-val (40 -> 32 train, 8 val)
 SAMPLES=${SAMPLES:-20}          # key frames per scene
 RES=${RES:-704x396}             # camera resolution WxH
-STEPS=${STEPS:-1500}             # optimizer steps per run
+STEPS=${STEPS:-1200}            # optimizer steps per run
 OUT=${OUT:-benchmark_out}       # data and run folders
 RESULTS=${RESULTS:-docs/results.md}
 DATA_SEED=1
