@@ -125,6 +125,8 @@ for run in "${RUNS[@]}"; do
       echo "benchmark: train $run stopped (exit $rc); rerun the same command to resume" >&2
       exit $rc
     fi
+  else
+    echo "benchmark: $run trained earlier ($step steps)"
   fi
 
   echo "benchmark: eval $run"

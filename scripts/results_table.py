@@ -188,7 +188,8 @@ def render(out: Path, run_names: list[str], now: float | None = None) -> str:
     total = sum((r["train_s"] or 0) + (r["eval_s"] or 0) for r in runs)
     lines.append(f"- Machine: {', '.join(map(str, threads)) or '?'} CPU cores (`nproc`), all used as torch threads. "
                  "Wall time: training (every part of a resumed run, an interrupted part included, so steps "
-                 f"recomputed after a resume count twice) and evaluation, in minutes; {total / 3600:.1f} h in all.")
+                 "recomputed after a resume count twice; only a part killed together with the script is missing) "
+                 f"and evaluation, in minutes; {total / 3600:.1f} h in all.")
     ends = sorted(e for r in runs for e in r["ends"])
     days = sorted({e[:10] for e in ends})
     when = "" if not days else f", run on {days[0]}" if len(days) == 1 else f", run from {days[0]} to {days[-1]}"
@@ -209,7 +210,8 @@ def render(out: Path, run_names: list[str], now: float | None = None) -> str:
             metrics = [num(s["mean_ap"], 4), num(s["nd_score"], 4), *(num(s["tp_errors"][k], 3) for k in TP_COLUMNS)]
         else:
             ran = f"{r['step']} of {steps}"
-            state = "pending (not started)" if r["info"] is None and not r["step"] else "pending"
+            state = ("pending (not started)" if r["info"] is None and not r["step"] else
+                     "pending (evaluation)" if r["step"] >= steps else "pending")
             metrics = [state, *[""] * (1 + len(TP_COLUMNS))]
         train_s = minutes(r["train_s"]) + (f" ({r['train_parts']} parts)" if r["train_parts"] > 1 else "")
         rows.append([f"`{r['name']}`", r["variant"], str(r["seed"]), str(ran), *metrics, train_s, minutes(r["eval_s"])])

@@ -145,7 +145,7 @@ def test_pending_runs_are_listed_with_their_progress(bench):
     runs = section(md, "Runs")
     assert row(runs, "`full_s0`")[:4] == ["full", "0", "7 of 10", "pending"]
     assert row(runs, "`full_s0`")[-2:] == ["1.8 (2 parts)", ""]
-    assert row(runs, "`concat_s0`")[2:4] == ["10 of 10", "pending"]
+    assert row(runs, "`concat_s0`")[2:4] == ["10 of 10", "pending (evaluation)"]
     for name in ("mcm_s0", "camera_s0", "lidar_s1", "full_s1"):
         assert row(runs, f"`{name}`")[2:4] == ["0 of 10", "pending (not started)"]
     assert row(section(md, "Per-class AP"), "`mcm_s0`")[0] == "pending"
