@@ -1,0 +1,329 @@
+#!/usr/bin/env python
+"""Write docs/results.md from the run folders of scripts/benchmark.sh.
+
+    python scripts/results_table.py benchmark_out --runs lidar_s0 full_s0 ... --out docs/results.md
+
+Reads OUT/benchmark.json (the benchmark's settings), the dataset's splits, and per run
+RUN/run.json (recipe, code version), RUN/wall.jsonl (the timed parts) and
+RUN/eval/metrics_summary.json (the devkit's summary). A run without the summary is listed as
+pending. The file is replaced atomically, so a reader never sees half a table. Standard library
+only: it runs in a second and needs no model.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+VERSION = "v1.0-sim"
+# The devkit's five TP errors (nuscenes.eval.detection.constants.TP_METRICS) and their columns.
+TP_COLUMNS = {"trans_err": "mATE", "scale_err": "mASE", "orient_err": "mAOE", "vel_err": "mAVE", "attr_err": "mAAE"}
+# The devkit's ten detection classes (detection_cvpr_2019), to name the ones not evaluated.
+DETECTION_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian", "motorcycle",
+                     "bicycle", "traffic_cone", "barrier")
+# Train-config fields that do not change the result (how often to save, loader processes).
+BOOKKEEPING = ("ckpt_minutes", "save_every_steps", "workers")
+
+
+# ---------------------------------------------------------------- reading
+
+def read_json(path: Path):
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def read_parts(path: Path) -> list[dict]:
+    """The lines of RUN/wall.jsonl; a line torn by a kill is skipped."""
+    parts = []
+    if path.exists():
+        for line in path.read_text().splitlines():
+            try:
+                parts.append(json.loads(line))
+            except ValueError:
+                pass
+    return parts
+
+
+def config_name(argv: list[str]) -> str:
+    """The --config value of a recorded command line (clfbev train's default: tiny)."""
+    for i, a in enumerate(argv):
+        if a == "--config" and i + 1 < len(argv):
+            return argv[i + 1]
+        if a.startswith("--config="):
+            return a.split("=", 1)[1]
+    return "tiny"
+
+
+def load_run(out: Path, name: str) -> dict:
+    """Everything the table needs about one run folder."""
+    run = out / name
+    variant, _, seed = name.rpartition("_s")
+    info = read_json(run / "run.json")
+    parts = read_parts(run / "wall.jsonl")
+    train = [p for p in parts if p.get("stage") == "train"]
+    evals = [p for p in parts if p.get("stage") == "eval"]
+    return {
+        "name": name, "variant": variant, "seed": int(seed),
+        "summary": read_json(run / "eval" / "metrics_summary.json"),
+        "info": info,
+        "train_s": sum(p["seconds"] for p in train) if train else None,
+        "train_parts": len(train),
+        "eval_s": evals[-1]["seconds"] if evals else None,
+        "step": max((p["to_step"] for p in train), default=0),
+        "threads": sorted({p["threads"] for p in parts if "threads" in p}),
+        "ends": sorted(p["end"] for p in parts if "end" in p),
+    }
+
+
+def split_sizes(data: Path) -> dict[str, tuple[int, int]] | None:
+    """{split: (scenes, samples)} of the dataset's splits.json, or None before it exists."""
+    tables = data / VERSION
+    splits = read_json(tables / "splits.json")
+    if splits is None or not (tables / "sample.json").exists():
+        return None
+    scene_name = {s["token"]: s["name"] for s in read_json(tables / "scene.json")}
+    per_scene: dict[str, int] = {}
+    for s in read_json(tables / "sample.json"):
+        per_scene[scene_name[s["scene_token"]]] = per_scene.get(scene_name[s["scene_token"]], 0) + 1
+    return {k: (len(v), sum(per_scene.get(n, 0) for n in v)) for k, v in splits.items()}
+
+
+# ---------------------------------------------------------------- formatting
+
+def num(x, digits: int) -> str:
+    """A metric; NaN (a TP error with no true positive) as n/a."""
+    return "n/a" if x is None or x != x else f"{x:.{digits}f}"
+
+
+def plural(n: int, word: str) -> str:
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
+def minutes(seconds) -> str:
+    return "" if seconds is None else f"{seconds / 60:.1f}"
+
+
+def table(header: list[str], rows: list[list[str]], right_from: int) -> list[str]:
+    align = ["---" if i < right_from else "---:" for i in range(len(header))]
+    return ["| " + " | ".join(r) + " |" for r in (header, align, *rows)]
+
+
+def mean_half_range(values: list[float]) -> tuple[float, float]:
+    return sum(values) / len(values), (max(values) - min(values)) / 2
+
+
+def recipe_of(info: dict) -> dict:
+    """The settings of a run that must agree across the table: all but the seed, the bookkeeping
+    and, when --max-steps sets the length, the unused epoch count."""
+    unused = ("seed", *BOOKKEEPING, *(("epochs",) if info["train"].get("max_steps") else ()))
+    train = {k: v for k, v in info["train"].items() if k not in unused}
+    return {"config_name": config_name(info.get("argv", [])), "config": info["config"], "train": train}
+
+
+def describe_train(train: dict) -> str:
+    return ", ".join(f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in train.items())
+
+
+# ---------------------------------------------------------------- the document
+
+def render(out: Path, run_names: list[str], now: float | None = None) -> str:
+    settings = read_json(out / "benchmark.json")
+    if settings is None:
+        raise FileNotFoundError(f"{out / 'benchmark.json'} is missing: run scripts/benchmark.sh first")
+    steps = settings["steps"]
+    runs = [load_run(out, n) for n in run_names]
+    done = [r for r in runs if r["summary"] is not None]
+    started = [r for r in runs if r["info"] is not None]
+    stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(now))
+    lines = [
+        "# Results: the benchmark",
+        "",
+        f"Written by `scripts/results_table.py` from `{out}` on {stamp}: **{len(done)} of {len(runs)} runs done**. "
+        "Generated, not edited by hand: `bash scripts/benchmark.sh` completes the missing runs and rewrites it.",
+        "",
+        "## Setup",
+        "",
+    ]
+
+    # Data: the settings, and the split sizes as the tables have them.
+    sizes = split_sizes(out / "data")
+    data = (f"`simgen make`, urban preset: {settings['scenes']} scenes x {settings['samples_per_scene']} key frames "
+            f"at {settings['resolution']}, seed {settings['data_seed']}, val fraction {settings['val_fraction']}")
+    if sizes:
+        data += "; " + ", ".join(f"`{k}` {plural(sc, 'scene')} ({plural(sa, 'sample')})" for k, (sc, sa) in sizes.items())
+    lines.append(f"- Data: {data}.")
+
+    # Recipe: read from run.json, and checked to be one recipe for every run.
+    recipes = {r["name"]: recipe_of(r["info"]) for r in started}
+    if recipes:
+        first_name, first = next(iter(recipes.items()))
+        tr = first["train"]
+        samples = steps * tr["batch_size"] * (started[0]["info"].get("world_size") or 1)
+        epochs = f", {samples / sizes['sim-train'][1]:.1f} epochs of `sim-train`" if sizes and sizes.get("sim-train") else ""
+        lines.append(f"- Recipe: the defaults of `clfbev train --config {first['config_name']}` (model config "
+                     f"`{first['config_name']}`), the same for every run but the seed. From `run.json`: "
+                     f"`{describe_train(tr)}`.")
+        lines.append(f"- Step budget: {steps} optimizer steps per run ({samples} samples{epochs}). No validation while "
+                     "training (`--val-split ''`), so nothing is selected on `sim-val`: the evaluated checkpoint is "
+                     "`last.pt`, the weights after the last step.")
+        differ = []
+        for name, rec in recipes.items():
+            keys = [k for k in {**first["train"], **rec["train"]} if rec["train"].get(k) != first["train"].get(k)]
+            keys += ["model config"] if rec["config"] != first["config"] or rec["config_name"] != first["config_name"] else []
+            if keys:
+                differ.append(f"`{name}` ({', '.join(keys)})")
+        if differ:
+            lines.append(f"- **Not one recipe:** these runs differ from `{first_name}`: {', '.join(differ)}. "
+                         "Their rows are not comparable; rerun them in a fresh OUT.")
+    else:
+        lines.append(f"- Recipe: the defaults of `clfbev train --config tiny`; no run has started yet. "
+                     f"Step budget: {steps} optimizer steps per run.")
+    lines.append("- Evaluation: `clfbev eval` on `sim-val`, the devkit's `DetectionEval` restricted to the classes "
+                 "with ground truth (with lidar points) in the split. The attribute is derived from the predicted "
+                 "speed, not learned, so mAAE follows from the velocity.")
+    threads = sorted({t for r in runs for t in r["threads"]})
+    total = sum((r["train_s"] or 0) + (r["eval_s"] or 0) for r in runs)
+    lines.append(f"- Machine: {', '.join(map(str, threads)) or '?'} CPU cores (`nproc`), all used as torch threads. "
+                 "Wall time: training (every part of a resumed run, an interrupted part included, so steps "
+                 "recomputed after a resume count twice; only a part killed together with the script is missing) "
+                 f"and evaluation, in minutes; {total / 3600:.1f} h in all.")
+    ends = sorted(e for r in runs for e in r["ends"])
+    days = sorted({e[:10] for e in ends})
+    when = "" if not days else f", run on {days[0]}" if len(days) == 1 else f", run from {days[0]} to {days[-1]}"
+    versions = {r["name"]: r["info"].get("code_version", "?") for r in started}
+    if len(set(versions.values())) == 1:
+        code = f"`{next(iter(versions.values()))}`"
+    else:
+        code = ", ".join(f"`{n}` `{v}`" for n, v in versions.items()) or "?"
+    lines += [f"- Code: {code} (`run.json`'s code_version){when}.", ""]
+
+    # The main table: one row per run, pending ones included.
+    lines += ["## Runs (sim-val)", ""]
+    rows = []
+    for r in runs:
+        s = r["summary"]
+        if s is not None:
+            ran = r["info"]["train"]["max_steps"] if r["info"] else steps
+            metrics = [num(s["mean_ap"], 4), num(s["nd_score"], 4), *(num(s["tp_errors"][k], 3) for k in TP_COLUMNS)]
+        else:
+            ran = f"{r['step']} of {steps}"
+            state = ("pending (not started)" if r["info"] is None and not r["step"] else
+                     "pending (evaluation)" if r["step"] >= steps else "pending")
+            metrics = [state, *[""] * (1 + len(TP_COLUMNS))]
+        train_s = minutes(r["train_s"]) + (f" ({r['train_parts']} parts)" if r["train_parts"] > 1 else "")
+        rows.append([f"`{r['name']}`", r["variant"], str(r["seed"]), str(ran), *metrics, train_s, minutes(r["eval_s"])])
+    lines += table(["run", "variant", "seed", "steps", "mAP", "NDS", *TP_COLUMNS.values(), "train min", "eval min"],
+                   rows, right_from=2)
+    lines.append("")
+
+    # Per-class AP: the classes the devkit evaluated (those with GT in the split), in its order.
+    classes: list[str] = []
+    for r in done:
+        classes += [c for c in r["summary"]["mean_dist_aps"] if c not in classes]
+    if done:
+        lines += ["## Per-class AP (sim-val)", ""]
+        rows = []
+        for r in runs:
+            aps = r["summary"]["mean_dist_aps"] if r["summary"] else None
+            rows.append([f"`{r['name']}`", *([num(aps.get(c), 3) if c in aps else "" for c in classes] if aps
+                                            else ["pending", *[""] * (len(classes) - 1)])])
+        lines += table(["run", *classes], rows, right_from=1)
+        missing = [c for c in DETECTION_CLASSES if c not in classes]
+        if missing:
+            lines += ["", f"Not evaluated (no ground truth with lidar points in `sim-val`, or not generated): "
+                          f"{', '.join(missing)}."]
+        lines.append("")
+
+    # Seed spread: variants with more than one seed.
+    by_variant: dict[str, list[dict]] = {}
+    for r in runs:
+        by_variant.setdefault(r["variant"], []).append(r)
+    multi = {v: rs for v, rs in by_variant.items() if len(rs) > 1}
+    if multi:
+        lines += ["## Seed spread", "",
+                  "Mean ± half the range over the seeds, and the spread (max - min): the part of a difference "
+                  "between variants that one seed's luck can explain.", ""]
+        rows = []
+        for v, rs in multi.items():
+            seeds = ", ".join(str(r["seed"]) for r in rs)
+            ok = [r["summary"] for r in rs if r["summary"] is not None]
+            if len(ok) < len(rs):
+                rows.append([v, seeds, f"pending ({len(ok)} of {len(rs)} seeds done)", "", "", ""])
+                continue
+            cells = []
+            for key in ("mean_ap", "nd_score"):
+                m, h = mean_half_range([s[key] for s in ok])
+                cells.append(f"{m:.4f} ± {h:.4f}")
+            cells += [f"{2 * mean_half_range([s[k] for s in ok])[1]:.4f}" for k in ("mean_ap", "nd_score")]
+            rows.append([v, seeds, *cells])
+        lines += table(["variant", "seeds", "mAP", "NDS", "mAP spread", "NDS spread"], rows, right_from=2)
+        lines.append("")
+
+    # The commands: the benchmark's invocation with every knob spelled out, and what it runs.
+    knobs = (f"SCENES={settings['scenes']} SAMPLES={settings['samples_per_scene']} RES={settings['resolution']} "
+             f"STEPS={steps}" + ("" if str(out) == "benchmark_out" else f" OUT={out}"))
+    data_dir = f"{out}/data"
+    lines += [
+        "## Reproduce",
+        "",
+        "```bash",
+        f"{knobs} bash scripts/benchmark.sh            # all runs; rerun to resume",
+        f"{knobs} bash scripts/benchmark.sh lidar full # or some variants (all their seeds)",
+        "# what it runs, per run V_sS (V the variant, S the seed):",
+        f".venv/bin/simgen make --scenes {settings['scenes']} --samples-per-scene {settings['samples_per_scene']} "
+        f"--resolution {settings['resolution']} --seed {settings['data_seed']} --val-fraction {settings['val_fraction']} "
+        f"--out {data_dir} --quiet",
+        f".venv/bin/clfbev train --data {data_dir} --config tiny --variant V --seed S --out {out}/V_sS "
+        f"--max-steps {steps} --val-split '' --threads $(nproc)    # --resume when {out}/V_sS/last.pt exists",
+        f".venv/bin/clfbev eval --data {data_dir} --ckpt {out}/V_sS/last.pt --split sim-val --out {out}/V_sS/eval",
+        f".venv/bin/python scripts/results_table.py {out} --runs {' '.join(run_names)} --out docs/results.md",
+        "```",
+        "",
+    ]
+    if recipes:
+        # One line per field, the form of a `--config` YAML file of overrides.
+        lines += [f"<details><summary>The model config <code>{first['config_name']}</code> (from run.json)</summary>",
+                  "", "```yaml", *(f"{k}: {json.dumps(v)}" for k, v in first["config"].items()), "```", "",
+                  "</details>", ""]
+    return "\n".join(lines)
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Replace ``path`` with ``text``: a temporary file in the same folder, then one rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", type=Path, help="the benchmark's folder (benchmark_out)")
+    ap.add_argument("--runs", nargs="+", required=True, help="run names, in table order (VARIANT_sSEED)")
+    ap.add_argument("--out", dest="results", type=Path, default=Path("docs/results.md"), help="markdown to write")
+    args = ap.parse_args(argv)
+    bad = [n for n in args.runs if not n.rpartition("_s")[2].isdigit()]
+    if bad:
+        print(f"results_table: run names must be VARIANT_sSEED, got {', '.join(bad)}", file=sys.stderr)
+        return 2
+    try:
+        text = render(args.out, args.runs)
+    except FileNotFoundError as e:
+        print(f"results_table: {e}", file=sys.stderr)
+        return 2
+    write_atomic(args.results, text)
+    n_done = sum((args.out / n / "eval" / "metrics_summary.json").exists() for n in args.runs)
+    print(f"benchmark: table {args.results} ({n_done} of {len(args.runs)} runs done)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
