@@ -447,7 +447,8 @@ def test_every_gt_gets_a_positive_with_the_closest_rotation(size):
     keep = spread_out(xy, labels, min_dist)
     labels, xy, yaw = labels[keep], xy[keep], yaw[keep]
     assert torch.bincount(labels).min() >= 5  # buses and trailers need the most room
-    gt = torch.cat([xy, torch.full_like(yaw[:, None], -1.0), sizes[labels], yaw[:, None], torch.zeros(len(yaw), 2)], dim=1)
+    z, velocity = torch.full_like(yaw[:, None], -1.0), torch.zeros(len(yaw), 2)
+    gt = torch.cat([xy, z, sizes[labels], yaw[:, None], velocity], dim=1)
 
     targets = assign_targets(anchors, gt, labels, match_thresholds(CLASS_NAMES))
     pos = torch.nonzero(targets.labels > 0).flatten()
