@@ -48,7 +48,7 @@ is its threshold (1/m^2)::
 Beyond the crossover the integral is ``(c tau_H / 2) / R^2``, so ``p_soft / p_hard`` is
 ``pi beta (c tau_H / 2) / (rho cos)``: the textbook ratio of a volume target to a Lambertian one.
 
-Strongest return (the HDL-32E's mode in nuScenes): the sensor reports the higher peak,
+Strongest return (the return mode modelled): the sensor reports the higher peak,
 ``p = max(p_hard, max_R p_soft(R))``, and reports it when ``p >= min_return``, the clear-weather
 threshold in the same units. A fog return therefore replaces a hard return only where it is
 stronger, and a ray whose attenuated hard return is above the threshold always reports
@@ -62,11 +62,20 @@ exactly. A sweep then costs one look-up per point.
 
 Parameters: ``beta = 0.046 / MOR`` (Rasshofer et al. 2011, advection fog; Hahner's default);
 ``tau_H = 20`` ns and the linear crossover from ``xi(0.9 m) = 0`` to ``xi(1.0 m) = 1`` are Hahner's
-defaults. The HDL-32E's data sheet gives no pulse width, so Hahner's is kept.
+defaults; no published pulse width or crossover of the HDL-32E is used, so Hahner's are kept
+(docs/fog.md shows how the figures move with either).
 Intensities use lidar.py's scale: ``intensity = 255 * clip(p * ref_range^2, 0, 1)``.
+
+The previous model compared ``rho cos / R^2`` with ``beta int`` (the soft side without its pi)
+and multiplied the threshold by ``1 + G (1 - exp(-alpha R0))`` with a calibrated ``G = 200``,
+which erased returns that the lidar equation keeps.
 
 Only rays with a clean return enter (the clean sweep holds no misses), so a ray into the open
 sky makes no fog return here, though in this model its fog echo would be above the threshold.
+
+References: R. H. Rasshofer, M. Spies, H. Spies, "Influences of weather phenomena on automotive
+laser radar systems", Adv. Radio Sci. 9, 2011. M. Hahner, C. Sakaridis, D. Dai, L. Van Gool,
+"Fog Simulation on Real LiDAR Point Clouds for 3D Object Detection in Adverse Weather", ICCV 2021.
 """
 from __future__ import annotations
 
@@ -162,42 +171,57 @@ def crossover(r: np.ndarray) -> np.ndarray:
     return np.clip((r - XI_R1) / (XI_R2 - XI_R1), 0.0, 1.0)
 
 
+def _fog_cells(alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The soft-target integrand on the table grid: R grid r (n,) m, the fog of each cell
+    ``[r_j, r_j + dr)`` sampled at its centre, ``h_j = pi beta xi exp(-2 alpha R') / R'^2`` (n,),
+    and the pulse by lag ``i - j`` (m,), ``sin^2(pi s / (c tau_H))`` at ``s = (lag - 1/2) dr``.
+    The midpoint rule makes the fog in front of a target at r_k exactly the cells j < k."""
+    dr = TABLE_STEP
+    r = np.arange(0.0, TABLE_MAX, dr)
+    beta = BETA_PER_INV_MOR / visibility_of(alpha)
+    rm = r + dr / 2
+    h = np.pi * beta * crossover(rm) / rm**2 * np.exp(-2 * alpha * rm)
+    width = C_LIGHT * TAU_H                                   # range extent of the pulse (m)
+    lag = np.arange(int(np.ceil(width / dr)) + 1)
+    pulse = np.where(lag > 0, np.sin(np.pi * np.clip((lag - 0.5) * dr / width, 0.0, 1.0)) ** 2, 0.0)
+    return r, h, pulse
+
+
+def _cut_peaks(h: np.ndarray, pulse: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """For targets at the first ``k`` grid ranges: the strongest echo (k,) of the fog in front of
+    each (cells j < k0) at waveform ranges past the target (i > k0), and its waveform index (k,).
+    One cumulative sum over the cells of a (k + len(pulse), k) matrix."""
+    rows = np.arange(k + len(pulse))[:, None]                 # waveform range index i
+    cols = np.arange(k)[None, :]                              # fog cell j
+    lag = rows - cols
+    M = np.where(lag < len(pulse), pulse[np.clip(lag, 0, len(pulse) - 1)], 0.0) * h[:k]   # pulse[0] = 0
+    cut = np.zeros((len(rows), k))
+    cut[:, 1:] = np.cumsum(M, axis=1)[:, :-1] * TABLE_STEP    # cut[i, k0]: the echo at r_i of cells j < k0
+    past = np.where(rows > cols, cut, -1.0)
+    i_best = np.argmax(past, axis=0)
+    return past[i_best, np.arange(k)], i_best
+
+
 @functools.lru_cache(maxsize=16)
 def fog_table(alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(R0 grid (n,) m, strongest fog power ``max_R p_soft(R; R0)`` (n,) 1/m^2, its reported range
     (n,) m) for extinction ``alpha``, on a uniform grid from 0 (step TABLE_STEP).
 
-    ``p_soft(R)`` without the cut at R0 is one discrete convolution of the pulse with
-    ``pi beta xi(R') exp(-2 alpha R') / R'^2``. Past the fog's own peak, the cut at R0 cannot raise
-    anything above that peak, so the strongest fog power is its running maximum; for the R0 short
-    of the peak the cut integral is summed exactly (a cumulative sum over R', a few hundred rows)."""
-    dr = TABLE_STEP
-    r = np.arange(0.0, TABLE_MAX, dr)
-    beta = BETA_PER_INV_MOR / visibility_of(alpha)
-    # Midpoint rule in R': the fog of cell j is [r_j, r_j + dr), sampled at its centre, so the fog
-    # in front of a target at r_k is exactly the cells j < k.
-    rm = r + dr / 2
-    h = np.pi * beta * crossover(rm) / rm**2 * np.exp(-2 * alpha * rm)
-    width = C_LIGHT * TAU_H                                   # range extent of the pulse (m)
-    lag = np.arange(int(np.ceil(width / dr)) + 1)             # i - j; s = R - R' = (lag - 1/2) dr
-    pulse = np.where(lag > 0, np.sin(np.pi * np.clip((lag - 0.5) * dr / width, 0.0, 1.0)) ** 2, 0.0)
-    full = np.convolve(h, pulse)[: len(r)] * dr               # p_soft(R), R on the grid, uncut
+    ``p_soft(R)`` without the cut at R0 is one discrete convolution of the pulse with the fog
+    cells. Up to R0 the cut changes nothing, so the running maximum of the uncut echo is a lower
+    bound; past the fog's own peak nothing can exceed that peak, so it is the answer. For R0 short
+    of the peak the waveform past R0 (fog in front of the target only) is checked exactly."""
+    r, h, pulse = _fog_cells(alpha)
+    full = np.convolve(h, pulse)[: len(r)] * TABLE_STEP       # uncut p_soft(R), R on the grid
     arg = np.maximum.accumulate(np.where(full >= np.maximum.accumulate(full), np.arange(len(r)), 0))
     best = full[arg]
-    # Targets nearer than the peak: the waveform past R0 sums only the fog in front of the target.
     k = int(np.argmax(full)) + 1
-    rows = np.arange(k + len(pulse))[:, None]                 # waveform range index i
-    cols = np.arange(k)[None, :]                              # fog cell j
-    d = rows - cols
-    M = np.where(d < len(pulse), pulse[np.clip(d, 0, len(pulse) - 1)], 0.0) * h[:k]   # pulse[d < 0] = pulse[0] = 0
-    cut = np.zeros((len(rows), k))
-    cut[:, 1:] = np.cumsum(M, axis=1)[:, :-1] * dr            # cut[i, k0] = p_soft(r_i; R0 = r_k0), cells j < k0
-    beyond = np.where(rows > cols, cut, -1.0)                 # waveform ranges past R0 only
-    i_b = np.argmax(beyond, axis=0)
-    better = beyond[i_b, np.arange(k)] > best[:k]
-    best[:k] = np.where(better, beyond[i_b, np.arange(k)], best[:k])
-    arg[:k] = np.where(better, i_b, arg[:k])
-    return r, best, np.maximum(r[np.minimum(arg, len(r) - 1)] - width / 2, 0.0)
+    cut_best, cut_arg = _cut_peaks(h, pulse, k)
+    better = cut_best > best[:k]
+    best[:k] = np.where(better, cut_best, best[:k])
+    arg[:k] = np.where(better, cut_arg, arg[:k])
+    # Reported range: the waveform peak less the hard echo's calibration offset c tau_H / 2.
+    return r, best, np.maximum(r[np.minimum(arg, len(r) - 1)] - C_LIGHT * TAU_H / 2, 0.0)
 
 
 def fog_returns(rho_cos: np.ndarray, range_m: np.ndarray, alpha: float, min_return: float) -> FogReturns:
