@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 from conftest import TINY_ARGS, run_simgen
+from scipy.special import lambertw
 
 from simgen import degrade as D
 from simgen import lidarseg as LS
@@ -349,3 +350,19 @@ def test_occluders_never_touch_an_actor():
             a = np.repeat(new, len(boxes), 0)
             b = np.tile(boxes, (len(new), 1))
             assert not geo.bev_overlap_pairwise(a, b).any()
+
+
+def test_hard_range_limit_is_where_the_target_stops_being_the_strongest_return():
+    """The docs' detection range: the lidar equation's own limit (rho e^{-2 alpha R} / R^2 =
+    min_return) where the threshold binds first, else the crossing with the fog's echo."""
+    for alpha in D.FOG_ALPHA[1:]:
+        r, p_fog, _ = D.fog_table(alpha)
+        for rho, thr in ((0.1, 5e-6), (0.5, 5e-6), (0.5, 2e-3)):
+            lim = D.hard_range_limit(rho, alpha, thr)
+            p = lambda R: rho / R**2 * np.exp(-2 * alpha * R)                # noqa: E731
+            k = int(round(lim / D.TABLE_STEP))
+            assert p(lim) >= max(thr, p_fog[k]) and p(lim + D.TABLE_STEP) < max(thr, p_fog[k + 1])
+            analytic = float(np.real(lambertw(alpha * math.sqrt(rho / thr)))) / alpha   # R e^{alpha R} = sqrt(rho/thr)
+            assert lim <= analytic + D.TABLE_STEP
+            if thr > p_fog.max():                                                # the threshold binds first
+                assert lim == pytest.approx(analytic, abs=D.TABLE_STEP)
