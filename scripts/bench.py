@@ -31,8 +31,19 @@ Keys (clfbev, CPU, one torch thread per process unless said):
 Keys (degradation and renderers):
   fog_overhead_pct              fog on one 1600x900 sample's 6 images and 10 sweeps (timed alone),
                                 as a share of sample_s_1600x900 (measured in the same run)
-  lidar_fog_points_by_severity, lidar_fog_returns_by_severity
-                                one urban sweep under fog severity 0..5: points kept, fog returns
+  lidar_fog_*                   one urban sweep (world 0, t = 0.05 s) under fog severity 0..5, from
+                                degrade.fog_returns' per-ray bookkeeping, bands by the clean range
+                                (0-10, 10-30, 30-50, 50+ m; the kept ratio without 0-10):
+    _points_by_severity, _returns_by_severity   points delivered, of which fog returns
+    _returns_by_band            fog returns per band, per severity
+    _silent_rays_by_severity    rays whose attenuated hard return reaches min_return (the lidar
+                                equation) but which report nothing; 0 in strongest-return physics
+    _equation_by_band           hard returns the lidar equation alone keeps (severity 1..5)
+    _kept_ratio_by_band         hard returns delivered / _equation_by_band (severity 1..5)
+    _won_share_by_band          share of the _equation_by_band rays the fog wins (1 - kept ratio)
+    _intensity_0_by_severity    clean returns whose attenuated 8-bit intensity round(i exp(-2 alpha R))
+                                is 0: an intensity-ratio fog (Hahner et al.'s real-data procedure)
+                                turns exactly these into fog returns on this sweep (docs/fog.md)
   mitsuba_s_per_image_800x450   one path-traced camera image (rgb pass) at mitsuba_spp
   demo_total_s                  `bash scripts/demo.sh` from scratch (only with --only demo)
 """
@@ -361,17 +372,48 @@ def bench_fog(quick: bool) -> dict:
 
     ms = median_ms(fog_one_sample, 3 if quick else 7)
     sample_s = bench_render_sample_s(quick)
-    # What fog does to one sweep, severity 0..5: points kept, and how many of them are fog returns.
-    from simgen import degrade as D
-    sw, points, fog = sweeps[0], [], []
-    for alpha in D.FOG_ALPHA:
-        pts, is_fog = D.fog_lidar(sw.points_lidar, sw.rho * sw.cos_inc, sw.range, sw.dir_lidar, alpha,
-                                  cfg.lidar.min_return, cfg.lidar.intensity_ref_range, np.random.default_rng(0),
-                                  background_gain=cfg.lidar.fog_background_gain)
-        points.append(len(pts))
-        fog.append(int(is_fog.sum()))
     return {"fog_ms_per_sample_1600x900": ms, "fog_overhead_pct": 100 * ms / 1000 / sample_s,
-            "lidar_fog_points_by_severity": points, "lidar_fog_returns_by_severity": fog}
+            **lidar_fog_figures(sweeps[0], cfg.lidar)}
+
+
+FOG_BANDS = ((0.0, 10.0), (10.0, 30.0), (30.0, 50.0), (50.0, np.inf))
+
+
+def lidar_fog_figures(sw, lidar) -> dict:
+    """What fog does to one clean sweep, severity 0..5 (see the lidar_fog_* keys)."""
+    from simgen import degrade as D
+    rho_cos = sw.rho * sw.cos_inc
+    band = np.digitize(sw.range, [b[1] for b in FOG_BANDS[:-1]])          # (n,) band index by clean range
+    per_band = lambda mask: [int((mask & (band == b)).sum()) for b in range(len(FOG_BANDS))]  # noqa: E731
+    out = {k: [] for k in ("points", "returns", "returns_by_band", "silent", "equation", "kept", "won",
+                           "intensity_0")}
+    for sev, alpha in enumerate(D.FOG_ALPHA):
+        pts, is_fog = D.fog_lidar(sw.points_lidar, rho_cos, sw.range, sw.dir_lidar, alpha, lidar.min_return,
+                                  lidar.intensity_ref_range, np.random.default_rng(0))
+        out["points"].append(len(pts))
+        out["returns"].append(int(is_fog.sum()))
+        if alpha == 0:
+            out["returns_by_band"].append([0] * len(FOG_BANDS))
+            out["silent"].append(0)
+            continue
+        f = D.fog_returns(rho_cos, sw.range, alpha, lidar.min_return)
+        assert int(f.kept.sum()) == len(pts) and int((f.kept & f.fog_wins).sum()) == int(is_fog.sum())
+        expected = f.p_hard >= lidar.min_return                            # the lidar equation alone
+        hard = f.kept & ~f.fog_wins
+        out["returns_by_band"].append(per_band(f.kept & f.fog_wins))
+        out["silent"].append(int((expected & ~f.kept).sum()))
+        eq, kept, won = per_band(expected)[1:], per_band(hard)[1:], per_band(expected & f.fog_wins)[1:]
+        out["equation"].append(eq)
+        out["kept"].append([round(k / e, 4) if e else None for k, e in zip(kept, eq)])
+        out["won"].append([round(w / e, 4) if e else None for w, e in zip(won, eq)])
+        # Ranged by the points themselves, as a procedure that sees only the point cloud does.
+        r0 = np.linalg.norm(sw.points_lidar[:, :3], axis=1)
+        i_att = np.round(sw.points_lidar[:, 3] * np.exp(-2 * alpha * r0))
+        out["intensity_0"].append(int(((i_att == 0) & (sw.points_lidar[:, 3] > 0)).sum()))
+    return {"lidar_fog_points_by_severity": out["points"], "lidar_fog_returns_by_severity": out["returns"],
+            "lidar_fog_returns_by_band": out["returns_by_band"], "lidar_fog_silent_rays_by_severity": out["silent"],
+            "lidar_fog_equation_by_band": out["equation"], "lidar_fog_kept_ratio_by_band": out["kept"],
+            "lidar_fog_won_share_by_band": out["won"], "lidar_fog_intensity_0_by_severity": out["intensity_0"]}
 
 
 def bench_render_sample_s(quick: bool) -> float:

@@ -88,9 +88,8 @@ class LidarConfig:
     min_return: float = field(default=5e-6, metadata=_rng(0.0, 1.0))
     # Intensity 255 is reached by rho * cos / R^2 >= 1 / intensity_ref_range^2.
     intensity_ref_range: float = field(default=6.0, metadata=_rng(0.5, 100.0))
-    # In fog the detection threshold rises to min_return * (1 + G * airlight fraction along the
-    # beam): the daylight the fog scatters into the receiver (degrade.py explains the calibration).
-    fog_background_gain: float = field(default=200.0, metadata=_rng(0.0, 1e5))
+    # Fog keeps this threshold: a return is lost only when the lidar equation puts it below
+    # min_return, and a fog echo replaces it only where stronger (simgen/degrade.py).
 
 
 SENSOR_CHANNELS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT",
@@ -174,6 +173,12 @@ class SceneConfig:
 
 VEHICLE_CLASSES = ("car", "truck", "bus", "motorcycle")
 
+# Keys that presets once had, with why they went: refused like any unknown key, with the reason.
+REMOVED_KEYS = {
+    ("LidarConfig", "fog_background_gain"): "removed: the lidar fog follows the lidar equation with the "
+                                            "clear-weather threshold (simgen/degrade.py)",
+}
+
 
 def _check_number(value, typ, meta, where):
     if typ is bool or isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -193,6 +198,9 @@ def _build(cls, data: Any, where: str):
     hints = get_type_hints(cls)
     public = {f.name: f for f in fields(cls) if not f.metadata.get("internal")}
     unknown = sorted(set(data) - set(public))
+    for key in unknown:
+        if (cls.__name__, key) in REMOVED_KEYS:
+            raise ConfigError(f"{where.rstrip(':')}: unknown key {key!r} ({REMOVED_KEYS[cls.__name__, key]})")
     if unknown:
         raise ConfigError(f"{where.rstrip(':')}: unknown key {unknown[0]!r} (allowed: {', '.join(public)})")
     kwargs = {}

@@ -9,47 +9,86 @@ alphas of the common-corruption benchmark, ``FOG_ALPHA``; the meteorological opt
 
 - Camera, Koschmieder's law on the rendered metric range ``d`` of each pixel:
   ``I = J t + A (1 - t)``, ``t = exp(-alpha d)``; sky pixels (no hit) take the airlight ``A``.
-- Lidar, the model of Hahner et al. (ICCV 2021), re-derived here from its equations. With the
-  transmitted pulse ``P0(t) = P0 sin^2(pi t / (2 tau_H))`` on ``[0, 2 tau_H]`` and the received
-  power ``P_R(R) = C_A int P0(t) H(R - c t / 2) dt``, both responses in units of ``C_A P0 2/c``:
+- Lidar: the lidar equation with a hard and a soft (fog) target, after Rasshofer et al. (2011)
+  and Hahner et al. (ICCV 2021, Sec. 3), re-derived here from their equations with the units
+  written out (no code of theirs is used).
 
-  * hard target of reflectivity ``rho`` at ``R0`` (peak of its echo):
-    ``P_hard = rho cos(inc) / R0^2 * exp(-2 alpha R0)``;
-  * fog (soft target, backscatter ``beta``, beam crossover ``xi``) between sensor and target:
-    ``P_soft(R) = beta int_{R - c tau_H}^{R} sin^2(pi (R - R') / (c tau_H)) xi(R') / R'^2
-    exp(-2 alpha R') dR'``, for ``R <= R0``.
+Lidar fog: derivation
+---------------------
+The received waveform, on the range axis ``R = c t / 2`` of the receive time t, is the pulse
+convolved with the spatial impulse response (Rasshofer et al. 2011; Hahner et al. 2021, Sec. 3)::
 
-  A return's power is the larger of ``P_hard`` and ``max_{R <= R0} P_soft(R)``. If the fog wins,
-  the point moves along its ray to the argmax range and takes the fog intensity; a return
-  whose power falls below the lidar's detection threshold is lost.
+    P_R(R) = C_A int_0^{2R/c} P0(t) H(R - c t / 2) dt,     P0(t) = P0 sin^2(pi t / (2 tau_H)) on [0, 2 tau_H]
 
-  The detection threshold rises with the daylight background. Fog scatters sunlight into the
-  receiver's field of view: the airlight the camera model adds as ``A (1 - t)``, here over the
-  beam's path up to its solid target, ``B = 1 - exp(-alpha R0)``. The receiver must hold its
-  false-alarm rate against that background, so ``T = min_return (1 + G B)``. The gain ``G``
-  (``LidarConfig.fog_background_gain``) is a calibration, not a derivation: at its default of
-  200 the simulated HDL-32E behaves as lidars measured in fog do (Bijelic et al. 2018; Hahner
-  et al. 2021): the far scene fades already in light fog, the point count falls with every
-  severity, and fog clutter near the sensor appears only in dense fog (MOR below about 100 m).
-  With ``G = 0`` every fog echo beats the clear-weather threshold, so each beam that loses its
-  target reports fog instead and the point count never falls. ``max_R P_soft`` and its
-  argmax, as functions of ``R0``, are a lookup table built once per ``alpha`` (a running max
-  over a fine range grid), so a sweep costs one table look-up per point.
-  ``beta = 0.046 / MOR`` (Rasshofer et al. 2011, advection fog), the crossover ``xi`` ramps
-  from 0 at ``R1 = 0.9`` m to 1 at ``R2 = 1.0`` m, and ``tau_H = 10`` ns. Intensities use the
-  simulator's own scale (lidar.py): ``intensity = 255 * clip(P * ref_range^2, 0, 1)``.
+C_A is the system constant (aperture, optics), tau_H the half-power pulse width.
+``H(R) = H_C(R) H_T(R)``: the channel ``H_C = xi(R) T(R)^2 / R^2`` (1/m^2), with the two-way
+transmission ``T^2 = exp(-2 alpha R)`` and the crossover ``xi`` (the share of the beam the receiver
+sees), and the target ``H_T`` (1/(m sr)):
+
+- hard, a Lambertian surface of reflectivity rho at R0 seen under incidence cos:
+  ``H_T = (rho cos / pi) delta(R - R0)``: rho / pi per steradian (its differential
+  reflectivity), delta per metre;
+- soft, the fog in front of it: ``H_T = beta U(R0 - R)``, beta the backscatter per metre and
+  steradian.
+
+With ``R' = R - c t / 2`` (``dt = 2 dR' / c``) both responses carry the same factor ``C_A P0 2/c``::
+
+    P_hard(R) = C_A P0 (2/c) (rho cos / pi) exp(-2 alpha R0) / R0^2 sin^2(pi (R - R0) / (c tau_H))
+    P_soft(R) = C_A P0 (2/c) beta int_{R - c tau_H}^{min(R, R0)} sin^2(pi (R - R') / (c tau_H)) xi(R') exp(-2 alpha R') / R'^2 dR'
+
+The hard echo is the pulse itself, its peak at ``R0 + c tau_H / 2``. The common factor cancels when
+the two are compared, so P0 and the aperture decide nothing here; they set the absolute
+threshold, which the simulator already has as ``min_return``. In units of ``C_A P0 (2/c) / pi``,
+those of lidar.py, where a clear-weather return has power ``rho cos / R^2`` and ``min_return``
+is its threshold (1/m^2)::
+
+    p_hard = rho cos exp(-2 alpha R0) / R0^2
+    p_soft(R) = pi beta int sin^2(...) xi(R') exp(-2 alpha R') / R'^2 dR'      (1/(m sr) * 1/m)
+
+Beyond the crossover the integral is ``(c tau_H / 2) / R^2``, so ``p_soft / p_hard`` is
+``pi beta (c tau_H / 2) / (rho cos)``: the textbook ratio of a volume target to a Lambertian one.
+
+Strongest return (the return mode modelled): the sensor reports the higher peak,
+``p = max(p_hard, max_R p_soft(R))``, and reports it when ``p >= min_return``, the clear-weather
+threshold in the same units. A fog return therefore replaces a hard return only where it is
+stronger, and a ray whose attenuated hard return is above the threshold always reports
+something. The sensor's range is calibrated on hard echoes (peak at ``R0 + c tau_H / 2``), so a
+fog peak at waveform range ``R_w`` is reported at ``R_w - c tau_H / 2``, with
+``FOG_RANGE_NOISE``. No background-light term: the clear-weather threshold stands.
+
+``max_R p_soft`` and the reported fog range, as functions of R0, are a lookup table built once
+per alpha (:func:`fog_table`); for R0 short of the fog's own peak the integral is cut at R0
+exactly. A sweep then costs one look-up per point.
+
+Parameters: ``beta = 0.046 / MOR`` (Rasshofer et al. 2011, advection fog; Hahner's default);
+``tau_H = 20`` ns and the linear crossover from ``xi(0.9 m) = 0`` to ``xi(1.0 m) = 1`` are Hahner's
+defaults; no published pulse width or crossover of the HDL-32E is used, so Hahner's are kept
+(docs/fog.md shows how the figures move with either).
+Intensities use lidar.py's scale: ``intensity = 255 * clip(p * ref_range^2, 0, 1)``.
+
+The previous model compared ``rho cos / R^2`` with ``beta int`` (the soft side without its pi)
+and multiplied the threshold by ``1 + G (1 - exp(-alpha R0))`` with a calibrated ``G = 200``,
+which erased returns that the lidar equation keeps.
+
+Only rays with a clean return enter (the clean sweep holds no misses), so a ray into the open
+sky makes no fog return here, though in this model its fog echo would be above the threshold.
+
+References: R. H. Rasshofer, M. Spies, H. Spies, "Influences of weather phenomena on automotive
+laser radar systems", Adv. Radio Sci. 9, 2011. M. Hahner, C. Sakaridis, D. Dai, L. Van Gool,
+"Fog Simulation on Real LiDAR Point Clouds for 3D Object Detection in Adverse Weather", ICCV 2021.
 """
 from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
 FOG_ALPHA = (0.0, 0.005, 0.01, 0.02, 0.03, 0.06)   # severity 0..5 (1/m)
 C_LIGHT = 299_792_458.0
-TAU_H = 10e-9             # half-power pulse width (s)
+TAU_H = 20e-9             # half-power pulse width (s), Hahner's default
 XI_R1, XI_R2 = 0.9, 1.0   # beam crossover: no overlap before R1, full overlap after R2 (m)
 BETA_PER_INV_MOR = 0.046  # backscatter beta = 0.046 / MOR (1/m)
 FOG_RANGE_NOISE = 0.05    # m, spread of the fog return's range
@@ -115,56 +154,123 @@ def lens_dirt(rgb: np.ndarray, severity: int, rng: np.random.Generator) -> np.nd
 
 # ---------------------------------------------------------------- lidar fog
 
+class FogReturns(NamedTuple):
+    """What fog makes of each clean return (all (n,)): its attenuated hard power ``p_hard`` and the
+    fog's strongest power ``p_soft`` (1/m^2, lidar.py's units), the range at which a fog return
+    is reported (m), whether the fog wins (``p_soft > p_hard``) and whether the ray reports a
+    return at all (``max(p_hard, p_soft) >= min_return``)."""
+    p_hard: np.ndarray
+    p_soft: np.ndarray
+    fog_range: np.ndarray
+    fog_wins: np.ndarray
+    kept: np.ndarray
+
+
+def crossover(r: np.ndarray) -> np.ndarray:
+    """The beam crossover xi(r): 0 before XI_R1, 1 after XI_R2, linear between."""
+    return np.clip((r - XI_R1) / (XI_R2 - XI_R1), 0.0, 1.0)
+
+
+def _fog_cells(alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The soft-target integrand on the table grid: R grid r (n,) m, the fog of each cell
+    ``[r_j, r_j + dr)`` sampled at its centre, ``h_j = pi beta xi exp(-2 alpha R') / R'^2`` (n,),
+    and the pulse by lag ``i - j`` (m,), ``sin^2(pi s / (c tau_H))`` at ``s = (lag - 1/2) dr``.
+    The midpoint rule makes the fog in front of a target at r_k exactly the cells j < k."""
+    dr = TABLE_STEP
+    r = np.arange(0.0, TABLE_MAX, dr)
+    beta = BETA_PER_INV_MOR / visibility_of(alpha)
+    rm = r + dr / 2
+    h = np.pi * beta * crossover(rm) / rm**2 * np.exp(-2 * alpha * rm)
+    width = C_LIGHT * TAU_H                                   # range extent of the pulse (m)
+    lag = np.arange(int(np.ceil(width / dr)) + 1)
+    pulse = np.where(lag > 0, np.sin(np.pi * np.clip((lag - 0.5) * dr / width, 0.0, 1.0)) ** 2, 0.0)
+    return r, h, pulse
+
+
+def _cut_peaks(h: np.ndarray, pulse: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """For targets at the first ``k`` grid ranges: the strongest echo (k,) of the fog in front of
+    each (cells j < k0) at waveform ranges past the target (i > k0), and its waveform index (k,).
+    One cumulative sum over the cells of a (k + len(pulse), k) matrix."""
+    rows = np.arange(k + len(pulse))[:, None]                 # waveform range index i
+    cols = np.arange(k)[None, :]                              # fog cell j
+    lag = rows - cols
+    M = np.where(lag < len(pulse), pulse[np.clip(lag, 0, len(pulse) - 1)], 0.0) * h[:k]   # pulse[0] = 0
+    cut = np.zeros((len(rows), k))
+    cut[:, 1:] = np.cumsum(M, axis=1)[:, :-1] * TABLE_STEP    # cut[i, k0]: the echo at r_i of cells j < k0
+    past = np.where(rows > cols, cut, -1.0)
+    i_best = np.argmax(past, axis=0)
+    return past[i_best, np.arange(k)], i_best
+
+
 @functools.lru_cache(maxsize=16)
 def fog_table(alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(R grid (n,), max_{R <= R0} P_soft (n,), its argmax range (n,)) for extinction ``alpha``.
+    """(R0 grid (n,) m, strongest fog power ``max_R p_soft(R; R0)`` (n,) 1/m^2, its reported range
+    (n,) m) for extinction ``alpha``, on a uniform grid from 0 (step TABLE_STEP).
 
-    P_soft(R) on the grid is the discrete convolution of the pulse shape with
-    ``beta xi(R') / R'^2 exp(-2 alpha R')``; built once per alpha (cached)."""
-    r = np.arange(0.0, TABLE_MAX, TABLE_STEP)
-    beta = BETA_PER_INV_MOR / visibility_of(alpha)
-    xi = np.clip((r - XI_R1) / (XI_R2 - XI_R1), 0.0, 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        h = np.where(r > 0, beta * xi / r**2 * np.exp(-2 * alpha * r), 0.0)
-    width = C_LIGHT * TAU_H                                   # range extent of the pulse (m)
-    s = np.arange(0.0, width + TABLE_STEP, TABLE_STEP)        # R - R'
-    pulse = np.sin(np.pi * s / width) ** 2
-    p_soft = np.convolve(h, pulse, mode="full")[: len(r)] * TABLE_STEP   # sum_s pulse(s) h(R - s) ds
-    best = np.maximum.accumulate(p_soft)
-    arg = np.maximum.accumulate(np.where(p_soft >= best, np.arange(len(r)), 0))
-    return r, best, r[arg]
+    ``p_soft(R)`` without the cut at R0 is one discrete convolution of the pulse with the fog
+    cells. Up to R0 the cut changes nothing, so the running maximum of the uncut echo is a lower
+    bound; past the fog's own peak nothing can exceed that peak, so it is the answer. For R0 short
+    of the peak the waveform past R0 (fog in front of the target only) is checked exactly."""
+    r, h, pulse = _fog_cells(alpha)
+    full = np.convolve(h, pulse)[: len(r)] * TABLE_STEP       # uncut p_soft(R), R on the grid
+    arg = np.maximum.accumulate(np.where(full >= np.maximum.accumulate(full), np.arange(len(r)), 0))
+    best = full[arg]
+    k = int(np.argmax(full)) + 1
+    cut_best, cut_arg = _cut_peaks(h, pulse, k)
+    better = cut_best > best[:k]
+    best[:k] = np.where(better, cut_best, best[:k])
+    arg[:k] = np.where(better, cut_arg, arg[:k])
+    # Reported range: the waveform peak less the hard echo's calibration offset c tau_H / 2.
+    return r, best, np.maximum(r[np.minimum(arg, len(r) - 1)] - C_LIGHT * TAU_H / 2, 0.0)
+
+
+def fog_returns(rho_cos: np.ndarray, range_m: np.ndarray, alpha: float, min_return: float) -> FogReturns:
+    """The strongest-return bookkeeping of fog ``alpha`` for clean returns of reflectivity times
+    cos(incidence) ``rho_cos`` (n,) at measured range ``range_m`` (n,) m; ``min_return`` is the
+    clear-weather threshold (1/m^2)."""
+    r, best, fog_r = fog_table(alpha)
+    p_hard = rho_cos / range_m**2 * np.exp(-2 * alpha * range_m)
+    idx = np.minimum(np.rint(range_m / TABLE_STEP).astype(np.int64), len(r) - 1)   # uniform grid from 0
+    p_soft = best[idx]
+    fog_wins = p_soft > p_hard
+    return FogReturns(p_hard, p_soft, fog_r[idx], fog_wins, np.maximum(p_hard, p_soft) >= min_return)
 
 
 def fog_lidar(points: np.ndarray, rho_cos: np.ndarray, range_m: np.ndarray, dir_lidar: np.ndarray, alpha: float,
-              min_return: float, ref_range: float, rng: np.random.Generator, *,
-              background_gain: float) -> tuple[np.ndarray, np.ndarray]:
+              min_return: float, ref_range: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Apply fog to one sweep.
 
     points : (n, >=5) float32 x, y, z, intensity, ring (lidar frame), then any columns carried
-    along unchanged (e.g. a per-point label). rho_cos : (n,) reflectivity
-    times cos(incidence). range_m : (n,) measured range. dir_lidar : (n, 3) unit ray directions.
-    min_return : clear-weather detection threshold on ``P`` (1/m^2); ref_range : intensity scale
-    (lidar.py). background_gain : ``G``, the threshold's rise under a full-airlight background.
+    along unchanged (e.g. a per-point label). rho_cos : (n,) reflectivity times cos(incidence).
+    range_m : (n,) measured range. dir_lidar : (n, 3) unit ray directions. min_return :
+    clear-weather detection threshold on ``p`` (1/m^2); ref_range : intensity scale (lidar.py).
 
-    Returns (points' (k, same columns), is_fog (k,) bool): the surviving returns, hard ones attenuated in
-    place, fog-won ones moved along their ray to the fog range with the fog intensity.
+    Returns (points (k, same columns), is_fog (k,) bool): the rows whose ray still reports a
+    return, in order; hard ones attenuated in place, fog-won ones moved along their ray to the
+    fog range with the fog intensity (:func:`fog_returns` says which).
     """
     if alpha <= 0 or len(points) == 0:
         return points.copy(), np.zeros(len(points), bool)
-    r, best, arg = fog_table(alpha)
-    p_hard = rho_cos / range_m**2 * np.exp(-2 * alpha * range_m)
-    idx = np.minimum((range_m / TABLE_STEP).astype(np.int64), len(r) - 1)     # the grid is uniform from 0
-    p_soft, r_fog = best[idx], arg[idx]
-    fog_wins = p_soft > p_hard
-    power = np.where(fog_wins, p_soft, p_hard)
+    f = fog_returns(rho_cos, range_m, alpha, min_return)
+    power = np.where(f.fog_wins, f.p_soft, f.p_hard)
     noise = FOG_RANGE_NOISE * rng.standard_normal(len(points))    # drawn for all: a fixed stream
-    new_range = np.where(fog_wins, np.maximum(r_fog + noise, 0.0), range_m)
+    new_range = np.where(f.fog_wins, np.maximum(f.fog_range + noise, 0.0), range_m)
     out = points.copy()
     out[:, :3] = points[:, :3] - dir_lidar * (range_m - new_range)[:, None]
     out[:, 3] = np.round(255.0 * np.clip(power * ref_range**2, 0.0, 1.0))
-    background = 1.0 - np.exp(-alpha * range_m)             # airlight fraction along the beam
-    keep = power >= min_return * (1.0 + background_gain * background)
-    return out[keep].astype(np.float32), fog_wins[keep]
+    return out[f.kept].astype(np.float32), f.fog_wins[f.kept]
+
+
+def hard_range_limit(rho_cos: float, alpha: float, min_return: float) -> float:
+    """The farthest range (m, on the table grid) at which a target of ``rho_cos`` is still reported
+    as itself in fog ``alpha``: its attenuated power reaches ``min_return`` and beats the fog's.
+    (Its power falls with range and the fog's strongest power never does, so the set is an interval.)"""
+    r = np.arange(0.0, TABLE_MAX, TABLE_STEP)
+    p_fog = fog_table(alpha)[1] if alpha > 0 else np.zeros_like(r)
+    with np.errstate(divide="ignore"):
+        p = rho_cos / r**2 * np.exp(-2 * alpha * r)
+    ok = (p >= min_return) & (p >= p_fog)
+    return float(r[ok].max()) if ok.any() else 0.0
 
 
 # ---------------------------------------------------------------- lidar structure

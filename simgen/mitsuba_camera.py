@@ -4,17 +4,29 @@ the pyrender cameras, with fog as a homogeneous participating medium of the lida
 Mitsuba's camera frame looks along +z with +y up and +x to the LEFT; the nuScenes camera frame
 looks along +z with y down and x right, so ``T_mitsuba_from_cv = diag(-1, -1, 1)`` (a half turn
 about z). The off-centre principal point is Mitsuba's ``principal_point_offset_x/y`` (in units
-of the film size, with the opposite sign to ``cx - W/2``). Per-face colours become vertex colours of unshared vertices, read by a
-diffuse BSDF through a ``mesh_attribute`` texture. A second pass, in which every shape emits its
+of the film size, with the opposite sign to ``cx - W/2``). Per-face colours are written as a face attribute
+(``face_color``), read by a diffuse BSDF through a ``mesh_attribute`` texture, with flat face normals.
+A second pass, in which every shape emits its
 actor id and nothing else is lit, gives the per-pixel actor id, used to check that both renderers
 agree geometrically.
 
 Variant: ``llvm_ad_rgb`` when LLVM 19 is available (REFERENCE.md), else ``scalar_rgb``, which
 works out of the box. It costs seconds per image, so it is an option for small photoreal sets.
+
+Why a face attribute and not vertex colours: the worlds hold sliver triangles (the 1 cm sides of
+the lane markings and road boxes, 66 m long). Mitsuba interpolates a vertex attribute from
+barycentric coordinates it recomputes in float32 from the hit point, through a Gram determinant
+``|e1|^2 |e2|^2 - (e1 . e2)^2`` that cancels to zero on such a sliver (66^4 against 66^2 * 1e-4):
+the colour, hence the sample, was NaN there (about 2,000 samples and 0.1-0.6% black pixels per
+640x360 image at 16 spp). A face attribute is looked up by the primitive index alone.
+
+Mitsuba's log goes to stderr (:func:`_log_to_stderr`), so that a caller's stdout stays its own
+(``scripts/bench.py --json`` prints JSON there).
 """
 from __future__ import annotations
 
 import ctypes.util
+import sys
 import tempfile
 from pathlib import Path
 
@@ -42,25 +54,36 @@ def choose_variant() -> str:
 
 
 def _ply(mesh: trimesh.Trimesh, path: Path) -> None:
-    """Write ``mesh`` as a binary PLY whose unshared vertices carry the face colours as float
-    linear RGB (Mitsuba's ``vertex_color`` must have 3 channels in [0, 1]; trimesh's export
-    writes 4 uchar channels)."""
-    faces = np.asarray(mesh.faces)
-    n = len(faces)
-    vert = np.empty(3 * n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                  ("red", "<f4"), ("green", "<f4"), ("blue", "<f4")])
-    xyz = np.asarray(mesh.vertices)[faces].reshape(-1, 3)
-    vert["x"], vert["y"], vert["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    """Write ``mesh`` as a binary PLY: its vertices, and per face the vertex indices and the face
+    colour as float linear RGB in [0, 1] (Mitsuba loads the face properties red, green, blue as
+    the ``face_color`` attribute; trimesh's export writes 4 uchar channels)."""
+    faces = np.asarray(mesh.faces, dtype=np.int32)
+    xyz = np.ascontiguousarray(mesh.vertices, dtype="<f4")
     # Reflectance in [0, 1], linear: the face colours are sRGB-encoded.
-    rgb = np.repeat((np.asarray(mesh.visual.face_colors)[:, :3] / 255.0) ** 2.2, 3, axis=0)
-    vert["red"], vert["green"], vert["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    face = np.empty(n, dtype=[("n", "u1"), ("v", "<i4", (3,))])
-    face["n"], face["v"] = 3, np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+    rgb = (np.asarray(mesh.visual.face_colors)[:, :3] / 255.0) ** 2.2
+    face = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,)),
+                                       ("red", "<f4"), ("green", "<f4"), ("blue", "<f4")])
+    face["n"], face["v"] = 3, faces
+    face["red"], face["green"], face["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
     header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {3 * n}\nproperty float x\nproperty float y\nproperty float z\n"
-              "property float red\nproperty float green\nproperty float blue\n"
-              f"element face {n}\nproperty list uchar int vertex_indices\nend_header\n")
-    path.write_bytes(header.encode() + vert.tobytes() + face.tobytes())
+              f"element vertex {len(xyz)}\nproperty float x\nproperty float y\nproperty float z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\n"
+              "property float red\nproperty float green\nproperty float blue\nend_header\n")
+    path.write_bytes(header.encode() + xyz.tobytes() + face.tobytes())
+
+
+def _log_to_stderr(mi) -> None:
+    """Send Mitsuba's log (its warnings included) to stderr instead of stdout."""
+    class StderrAppender(mi.Appender):
+        def append(self, level, text):
+            sys.stderr.write(text + "\n")
+
+        def log_progress(self, progress, name, formatted, eta, ptr=None):
+            pass
+
+    logger = mi.logger() if hasattr(mi, "logger") else mi.Thread.thread().logger()
+    logger.clear_appenders()
+    logger.add_appender(StderrAppender())
 
 
 class MitsubaRenderer:
@@ -70,9 +93,11 @@ class MitsubaRenderer:
         import mitsuba as mi
         self.variant = variant or choose_variant()
         mi.set_variant(self.variant)
+        _log_to_stderr(mi)
         self.mi, self.cfg, self.spp = mi, cfg, spp
         self._tmp = tempfile.TemporaryDirectory(prefix="simgen-mitsuba-")
         self._static_key = None
+        self.last_linear: np.ndarray | None = None
 
     def close(self) -> None:
         self._tmp.cleanup()
@@ -85,8 +110,8 @@ class MitsubaRenderer:
         if self._static_key != key:
             _ply(world.static_mesh, root / "static.ply")
             self._static_key = key
-        bsdf = {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}
-        shapes = {"s0000": {"type": "ply", "filename": str(root / "static.ply"), "bsdf": bsdf}}
+        bsdf = {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "face_color"}}
+        shapes = {"s0000": {"type": "ply", "filename": str(root / "static.ply"), "bsdf": bsdf, "face_normals": True}}
         owners = [0]
         for a in world.actors:
             if not a.annotate or a.id not in actor_poses:
@@ -95,7 +120,7 @@ class MitsubaRenderer:
             m.apply_transform(actor_poses[a.id])
             path = root / f"actor{a.id}.ply"
             _ply(m, path)
-            shapes[f"s{len(owners):04d}"] = {"type": "ply", "filename": str(path), "bsdf": bsdf}
+            shapes[f"s{len(owners):04d}"] = {"type": "ply", "filename": str(path), "bsdf": bsdf, "face_normals": True}
             owners.append(a.id)
         return shapes, owners
 
@@ -126,7 +151,7 @@ class MitsubaRenderer:
     def render(self, world: World, cam: Camera, T_global_from_cam: np.ndarray, actor_poses: dict[int, np.ndarray],
                fog_alpha: float = 0.0, with_ids: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """rgb (H, W, 3) uint8 and ids (H, W) int32 (actor id per pixel, 0 = static world / sky;
-        None unless ``with_ids``)."""
+        None unless ``with_ids``). The rgb pass's linear float image stays in ``self.last_linear``."""
         mi = self.mi
         shapes, owners = self._shapes(world, actor_poses)
         sun_az = float(world.meta.get("sun_azimuth", 0.8))
@@ -150,8 +175,9 @@ class MitsubaRenderer:
         integrator = ({"type": "volpath", "max_depth": 8} if fog_alpha > 0 else {"type": "path", "max_depth": 3})
         scene = mi.load_dict({"type": "scene", "integrator": integrator, **shapes, **emitters,
                               "sensor": self._sensor(cam, T_global_from_cam, self.spp, medium)})
-        rgb = np.asarray(mi.render(scene, spp=self.spp))[..., :3]
-        rgb = np.round(255 * np.clip(np.nan_to_num(rgb), 0, 1) ** (1 / 2.2)).astype(np.uint8)
+        self.last_linear = np.asarray(mi.render(scene, spp=self.spp))[..., :3]   # (H, W, 3) float32, linear
+        # nan_to_num only as a guard: no sample is NaN since the face colours (module docstring).
+        rgb = np.round(255 * np.clip(np.nan_to_num(self.last_linear), 0, 1) ** (1 / 2.2)).astype(np.uint8)
         if not with_ids:
             return rgb, None
 

@@ -43,8 +43,7 @@ def degrade_sweep(sweep, cfg: SceneConfig, rings: np.ndarray,
     pts = np.concatenate([sweep.points_lidar, sweep.label[:, None].astype(np.float32)], axis=1)
     if d.alpha > 0:
         pts, is_fog = D.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, d.alpha,
-                                  cfg.lidar.min_return, cfg.lidar.intensity_ref_range, rng,
-                                  background_gain=cfg.lidar.fog_background_gain)
+                                  cfg.lidar.min_return, cfg.lidar.intensity_ref_range, rng)
         pts[is_fog, 5] = LS.NOISE
     if len(rings):
         pts = D.drop_rings(pts, rings)

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 from conftest import TINY_ARGS, run_simgen
+from scipy.special import lambertw
 
 from simgen import degrade as D
 from simgen import lidarseg as LS
@@ -46,14 +47,15 @@ def _synthetic_returns(ranges, rho_cos):
 
 def test_lidar_fog_hard_returns_attenuate_as_exp_minus_2_alpha_r():
     """Strong targets (the fog cannot beat them) keep their place; power scales exp(-2 alpha R)."""
-    ranges = np.linspace(5.0, 40.0, 36)
-    rho_cos = np.full(36, 0.9)
+    ranges = np.linspace(5.0, 25.0, 21)
+    rho_cos = np.full(21, 0.9)
     pts, dirs = _synthetic_returns(ranges, rho_cos)
     ref = 2.0                                          # intensity unsaturated: P ref^2 < 1
     alpha = D.FOG_ALPHA[2]
-    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, alpha, 1e-9, ref, np.random.default_rng(0),
-                              background_gain=0.0)
-    assert not is_fog.any() and len(out) == 36
+    p_hard = rho_cos / ranges**2 * np.exp(-2 * alpha * ranges)
+    assert (p_hard > D.fog_table(alpha)[1].max()).all()                 # the fog cannot win
+    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, alpha, 1e-9, ref, np.random.default_rng(0))
+    assert not is_fog.any() and len(out) == 21
     np.testing.assert_allclose(out[:, :3], pts[:, :3])                  # not moved
     clean = 255 * rho_cos / ranges**2 * ref**2
     ratio = out[:, 3] / clean
@@ -64,30 +66,56 @@ def test_lidar_fog_moves_weak_far_returns_to_the_fog_range_along_the_ray():
     ranges = np.array([60.0, 80.0])
     rho_cos = np.array([0.05, 0.05])
     pts, dirs = _synthetic_returns(ranges, rho_cos)
-    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 5e-6, 6.0, np.random.default_rng(0),
-                              background_gain=0.0)
+    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 5e-6, 6.0, np.random.default_rng(0))
     assert is_fog.all()
     r = np.linalg.norm(out[:, :3], axis=1)
-    assert ((r > 1.0) & (r < 5.0)).all()                                # near the sensor
+    assert ((r > 1.0) & (r < 3.0)).all()                                # near the sensor
     np.testing.assert_allclose(out[:, :3] / r[:, None], dirs, atol=1e-6)  # on the same ray
     # A return lost to attenuation when the fog response is below the threshold too.
-    out2, _ = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 1.0, 6.0, np.random.default_rng(0),
-                          background_gain=0.0)
+    out2, _ = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 1.0, 6.0, np.random.default_rng(0))
     assert len(out2) == 0
 
 
-def test_lidar_fog_threshold_rises_with_the_airlight_along_the_beam():
-    """A hard return is kept exactly when P_hard >= min_return (1 + G (1 - exp(-alpha R0)))."""
-    alpha, t0, gain = D.FOG_ALPHA[3], 5e-6, 200.0
+def test_lidar_fog_keeps_the_clear_weather_threshold():
+    """A hard return the fog cannot beat is kept exactly when exp(-2 alpha R0) rho cos / R0^2
+    reaches min_return: fog raises no threshold."""
+    alpha = D.FOG_ALPHA[3]
     ranges = np.array([10.0, 20.0, 30.0])
-    threshold = t0 * (1 + gain * (1 - np.exp(-alpha * ranges)))
+    t0 = 2 * D.fog_table(alpha)[1].max()                                # above every fog echo
     for factor, kept in ((1.01, True), (0.99, False)):
-        rho_cos = factor * threshold * ranges**2 * np.exp(2 * alpha * ranges)   # P_hard = factor * T
-        assert (rho_cos / ranges**2 > D.fog_table(alpha)[1][-1]).all()          # the fog cannot win
+        rho_cos = factor * t0 * ranges**2 * np.exp(2 * alpha * ranges)   # p_hard = factor * t0
         pts, dirs = _synthetic_returns(ranges, rho_cos)
-        out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, alpha, t0, 6.0, np.random.default_rng(0),
-                                  background_gain=gain)
+        out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, alpha, t0, 6.0, np.random.default_rng(0))
         assert len(out) == (3 if kept else 0) and not is_fog.any()
+
+
+@pytest.mark.parametrize("alpha", [D.FOG_ALPHA[1], D.FOG_ALPHA[5]])
+def test_fog_table_is_the_soft_target_integral(alpha):
+    """The table against a direct quadrature of the soft-target echo (degrade.py's derivation):
+    pi beta int sin^2(pi (R - R') / (c tau_H)) xi(R') exp(-2 alpha R') / R'^2 dR' over the fog in
+    front of the target (R' <= R0), its maximum over the waveform range R, reported at R - c tau_H / 2."""
+    width = D.C_LIGHT * D.TAU_H
+    beta = D.BETA_PER_INV_MOR / D.visibility_of(alpha)
+    r_tab, best, fog_r = D.fog_table(alpha)
+    dr = 0.004
+    for R0 in (1.2, 2.0, 3.0, 4.0, 10.0, 60.0):
+        # The fog in front of the target (midpoints); waveform ranges up to 15 m, past which the
+        # echo only falls (1/R^2 and exp(-2 alpha R), checked at the end).
+        Rp = np.arange(dr / 2, min(R0, 15.0), dr)
+        h = np.pi * beta * D.crossover(Rp) * np.exp(-2 * alpha * Rp) / Rp**2
+        R = np.arange(0.0, min(R0 + width, 15.0), 0.01)[:, None]
+        s = R - Rp[None, :]
+        w = np.where((s >= 0) & (s <= width), np.sin(np.pi * s / width) ** 2, 0.0)
+        wave = (w * h).sum(1) * dr
+        k = int(round(R0 / D.TABLE_STEP))
+        assert best[k] == pytest.approx(wave.max(), rel=0.01), R0
+        assert fog_r[k] == pytest.approx(R[np.argmax(wave), 0] - width / 2, abs=0.03), R0
+    # Far from the sensor the echo of fog alone is the textbook volume return pi beta (c tau_H / 2) / R^2.
+    far = 40.0
+    Rp = np.arange(far - width, far, dr)
+    wave = (np.sin(np.pi * (far - Rp) / width) ** 2 * np.pi * beta * np.exp(-2 * alpha * Rp) / Rp**2).sum() * dr
+    assert wave == pytest.approx(np.pi * beta * width / 2 * np.exp(-2 * alpha * (far - width / 2)) / (far - width / 2) ** 2,
+                                 rel=0.02)
 
 
 @pytest.fixture(scope="module")
@@ -98,26 +126,121 @@ def clean_sweep():
     return cfg, LidarScanner(cfg.lidar, world).scan(0.5, np.random.default_rng(0))
 
 
-def test_lidar_fog_on_a_scene_monotone_in_severity(clean_sweep):
+BANDS = (0.0, 10.0, 30.0, 50.0, np.inf)
+
+
+def _fog_by_ray(sweep, cfg, alpha):
+    """Run fog with each ray's index carried as an extra column: (delivered ray indices, is_fog)."""
+    pts = np.concatenate([sweep.points_lidar, np.arange(len(sweep.range), dtype=np.float32)[:, None]], axis=1)
+    out, is_fog = D.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, alpha,
+                              cfg.lidar.min_return, cfg.lidar.intensity_ref_range, np.random.default_rng(1))
+    return out[:, 5].astype(np.int64), is_fog, out
+
+
+def test_lidar_fog_follows_the_lidar_equation_on_a_sweep(clean_sweep):
+    """Strongest return, on a generated sweep: no ray whose attenuated hard return reaches the
+    clear-weather threshold goes silent; the hard returns per band are exactly the lidar
+    equation's minus the rays the fog wins, never more; the fog wins the weakest first."""
     cfg, sweep = clean_sweep
-    far, total, fog_near = [], [], []
-    for sev in range(6):
+    band = np.digitize(sweep.range, BANDS[1:-1])
+    rho_cos = sweep.rho * sweep.cos_inc
+    loss, n_fog = [], []
+    for alpha in D.FOG_ALPHA:
+        p_hard = rho_cos / sweep.range**2 * np.exp(-2 * alpha * sweep.range)     # the lidar equation
+        expected = p_hard >= cfg.lidar.min_return
+        ray, is_fog, out = _fog_by_ray(sweep, cfg, alpha)
+        assert (np.diff(ray) > 0).all()                                    # rows in ray order
+        delivered = np.zeros(len(expected), bool)
+        delivered[ray] = True
+        assert not (expected & ~delivered).any()                            # no silent ray
+        hard = np.zeros(len(expected), bool)
+        hard[ray[~is_fog]] = True
+        won = np.zeros(len(expected), bool)
+        won[ray[is_fog]] = True
+        assert not (hard & ~expected).any()                                  # never above the equation
+        xyz_ring = [0, 1, 2, 4]                                              # hard rows stay in place
+        np.testing.assert_array_equal(out[~is_fog][:, xyz_ring], sweep.points_lidar[ray[~is_fog]][:, xyz_ring])
+        for b in range(len(BANDS) - 1):
+            in_b = band == b
+            assert (hard & in_b).sum() == (expected & in_b).sum() - (expected & won & in_b).sum()
+        far = sweep.range > 5.0                                              # past the fog's own peak
+        if (won & far).any() and (hard & far).any():
+            assert p_hard[won & far].max() <= p_hard[hard & far].min()       # the weakest go first
+        loss.append([int((~hard & (band == b)).sum()) for b in range(len(BANDS) - 1)])
+        n_fog.append(int(is_fog.sum()))
+    loss = np.array(loss)
+    assert (np.diff(loss, axis=0) >= 0).all(), loss                         # loss grows in every band
+    assert (np.diff(loss.sum(1)) > 0).all(), loss
+    assert n_fog[0] == 0 and all(b > a for a, b in zip(n_fog, n_fog[1:])), n_fog
+
+
+def test_lidar_fog_on_a_scene_labels_and_places_the_fog_returns(clean_sweep):
+    cfg, sweep = clean_sweep
+    for sev in range(1, 6):
         c = with_degradation(cfg, fog=sev)
         pts, seg = degrade_sweep(sweep, c, np.zeros(0, int), np.random.default_rng(1))
-        r = np.linalg.norm(pts[:, :3], axis=1)
-        far.append(int((r > 30).sum()))
-        total.append(len(pts))
         same, is_fog = D.fog_lidar(sweep.points_lidar, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar,
                                    D.FOG_ALPHA[sev], cfg.lidar.min_return, cfg.lidar.intensity_ref_range,
-                                   np.random.default_rng(1), background_gain=cfg.lidar.fog_background_gain)
+                                   np.random.default_rng(1))
         np.testing.assert_array_equal(same, pts)
         # Fog returns are labelled noise; the hard returns keep their surface's class.
         assert (seg[is_fog] == LS.NOISE).all() and (seg[~is_fog] != LS.NOISE).all()
-        fog_near.append(int((is_fog & (r < 10)).sum()))
-    assert all(b < a for a, b in zip(total, total[1:])), total     # every severity loses points
-    assert far == sorted(far, reverse=True) and far[5] < far[0] // 4   # the far scene fades away
-    assert fog_near == sorted(fog_near) and fog_near[0] == 0        # fog clutter near the sensor ...
-    assert fog_near[5] > 1000 and fog_near[5] > 10 * fog_near[3]    # ... appears in dense fog
+        # They sit near the sensor: the fog's echo peaks a few metres out, read as the pulse's lead.
+        ray, _, _ = _fog_by_ray(sweep, cfg, D.FOG_ALPHA[sev])
+        r_fog = np.linalg.norm(pts[is_fog, :3] - (sweep.points_lidar[ray[is_fog], :3]
+                                                  - sweep.dir_lidar[ray[is_fog]] * sweep.range[ray[is_fog], None]), axis=1)
+        assert is_fog.any() and (r_fog > 1.0).all() and (r_fog < 2.5).all()
+
+
+def test_one_alpha_drives_camera_and_lidar():
+    """One setting, one alpha: a pixel's transmittance is exp(-alpha d) and a hard return's power
+    exp(-2 alpha R), through the pipeline's own degrade functions."""
+    from simgen import rig
+    from simgen.camera import depth_to_range
+    from simgen.lidar import Sweep
+    from simgen.pipeline import degrade_image
+    cfg = with_degradation(load_preset("tiny"), fog_visibility=150.0)
+    alpha = cfg.degrade.alpha
+    assert alpha == pytest.approx(math.log(20) / 150.0)
+    cam = rig.cameras((160, 90))[0]
+    depth = np.full((90, 160), 40.0, np.float32)
+    J = np.full((90, 160, 3), 30, np.uint8)
+    img = degrade_image(J, depth, cam, cfg, MakeSettings(cfg, 1, 7, 1, "v1.0-sim"), 0, 0).astype(float)
+    d = depth_to_range(depth, cam.K)
+
+    def pixel(a):
+        t = np.exp(-a * d)[..., None]
+        return np.round(J * t + D.AIRLIGHT * (1 - t))
+
+    assert np.abs(img - pixel(alpha)).max() <= 1.0 and np.abs(img - pixel(1.1 * alpha)).max() > 3.0
+    n = 16
+    ranges = np.linspace(5.0, 20.0, n)
+    dirs = np.tile([[0.0, 1.0, 0.0]], (n, 1))
+    pts = np.zeros((n, 5), np.float32)
+    pts[:, :3] = dirs * ranges[:, None]
+    rho = np.full(n, 0.9, np.float32)
+    ref2 = cfg.lidar.intensity_ref_range ** 2
+    pts[:, 3] = np.round(255 * np.clip(0.9 / ranges**2 * ref2, 0, 1))
+    sweep = Sweep(pts, np.zeros(n), np.zeros(n, np.int32), rho, np.ones(n), ranges, dirs, np.ones(n, np.uint8))
+    got, _ = degrade_sweep(sweep, cfg, np.zeros(0, int), np.random.default_rng(0))
+
+    def intensity(a):
+        return np.round(255 * np.clip(0.9 / ranges**2 * np.exp(-2 * a * ranges) * ref2, 0, 1))
+
+    np.testing.assert_array_equal(got[:, 3], intensity(alpha))
+    assert (got[:, 3] != intensity(1.1 * alpha)).any()
+
+
+def test_removed_fog_background_gain_is_refused(tmp_path):
+    from simgen.config import ConfigError, list_presets
+    bad = tmp_path / "old.yaml"
+    bad.write_text("lidar:\n  fog_background_gain: 200.0\n")
+    with pytest.raises(ConfigError) as e:
+        load_preset(str(bad))
+    msg = str(e.value)
+    assert "lidar: unknown key 'fog_background_gain'" in msg and "removed" in msg and str(bad) in msg and "\n" not in msg
+    for name in list_presets():                                          # no preset still sets it
+        load_preset(name)
 
 
 def test_beam_drop_and_sector(clean_sweep):
@@ -227,3 +350,19 @@ def test_occluders_never_touch_an_actor():
             a = np.repeat(new, len(boxes), 0)
             b = np.tile(boxes, (len(new), 1))
             assert not geo.bev_overlap_pairwise(a, b).any()
+
+
+def test_hard_range_limit_is_where_the_target_stops_being_the_strongest_return():
+    """The docs' detection range: the lidar equation's own limit (rho e^{-2 alpha R} / R^2 =
+    min_return) where the threshold binds first, else the crossing with the fog's echo."""
+    for alpha in D.FOG_ALPHA[1:]:
+        r, p_fog, _ = D.fog_table(alpha)
+        for rho, thr in ((0.1, 5e-6), (0.5, 5e-6), (0.5, 2e-3)):
+            lim = D.hard_range_limit(rho, alpha, thr)
+            p = lambda R: rho / R**2 * np.exp(-2 * alpha * R)                # noqa: E731
+            k = int(round(lim / D.TABLE_STEP))
+            assert p(lim) >= max(thr, p_fog[k]) and p(lim + D.TABLE_STEP) < max(thr, p_fog[k + 1])
+            analytic = float(np.real(lambertw(alpha * math.sqrt(rho / thr)))) / alpha   # R e^{alpha R} = sqrt(rho/thr)
+            assert lim <= analytic + D.TABLE_STEP
+            if thr > p_fog.max():                                                # the threshold binds first
+                assert lim == pytest.approx(analytic, abs=D.TABLE_STEP)
