@@ -80,7 +80,7 @@ def test_config_and_coverage_checks(tiny_nusc, tmp_path):
 
 @pytest.mark.slow
 def test_overfit_four_samples_car_ap(tmp_path):
-    """Tiny 'full' model, trained from scratch on 4 samples, detects their cars (car AP >= 0.9).
+    """Tiny 'full' model, trained from scratch on 4 samples, detects their cars (car AP >= 0.95).
 
     AdamW at lr 2e-3: the paper's 2e-4 is for a large batch and many epochs; a tiny net from
     scratch on a few samples needs a larger step to memorise them in a few hundred steps.
@@ -136,4 +136,4 @@ def test_overfit_four_samples_car_ap(tmp_path):
     print(f"steps {steps}, train {train_s:.0f} s, loss {losses[0]:.3f} -> min {min(losses):.3f} "
           f"-> last {losses[-1]:.3f}; mAP {summary['mean_ap']:.3f}, NDS {summary['nd_score']:.3f}")
     print("AP per class: " + ", ".join(f"{k} {v:.3f}" for k, v in aps.items()))
-    assert aps["car"] >= 0.9
+    assert aps["car"] >= 0.95
