@@ -39,6 +39,7 @@ whether that backend could be used; the modules here always run the pure-torch p
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
@@ -105,40 +106,170 @@ def encode_coords(coords: Tensor, spatial_shape: Triple) -> Tensor:
     return ((coords[:, 0] * nz + coords[:, 1]) * ny + coords[:, 2]) * nx + coords[:, 3]
 
 
-def _kernel_offsets(kernel_size: Triple, device: torch.device) -> Tensor:
-    """(K, 3) offsets (kz, ky, kx) in the order of ``weight[:, :, kz, ky, kx]`` flattened."""
-    kz, ky, kx = kernel_size
-    grid = torch.meshgrid(
-        torch.arange(kz, device=device), torch.arange(ky, device=device), torch.arange(kx, device=device),
-        indexing="ij",
-    )
-    return torch.stack([g.reshape(-1) for g in grid], dim=1)
+def decode_keys(keys: Tensor, spatial_shape: Triple) -> Tensor:
+    """(N,) int64 keys -> (N, 4) long (b, z, y, x); the inverse of ``encode_coords``."""
+    nz, ny, nx = spatial_shape
+    x, rest = keys % nx, keys // nx
+    y, rest = rest % ny, rest // ny
+    z, b = rest % nz, rest // nz
+    return torch.stack([b, z, y, x], dim=1)
+
+
+# A dense lookup table costs 8 bytes per grid cell; above this many cells (256 MB) the lookup
+# falls back to sorted keys and a binary search.
+DENSE_TABLE_MAX_CELLS = 1 << 25
+
+
+class _SiteLookup:
+    """Row of an active site from its cell key.
+
+    Keys index the cells of a batch of grids, ``[0, n_cells)``; the key ``n_cells`` stands for
+    "no cell" (a neighbour outside the grid). A cell without an active site, and "no cell", get
+    the row ``n_rows``: the index of the zero row that the convolution appends to its input.
+
+    Small grids use a dense table (one gather per query, no sort); large ones the sorted keys and
+    ``torch.searchsorted``. Both give the same rows.
+    """
+
+    def __init__(self, keys: Tensor, n_cells: int):
+        self.n_rows = keys.numel()
+        rows = torch.arange(self.n_rows, device=keys.device)
+        if n_cells <= DENSE_TABLE_MAX_CELLS:
+            self.table = torch.full((n_cells + 1,), self.n_rows, dtype=torch.long, device=keys.device)
+            self.table[keys] = rows
+        else:
+            self.table = None
+            self.sorted_keys, self.order = torch.sort(keys)
+
+    def rows(self, query: Tensor) -> Tensor:
+        """Keys of any shape, in ``[0, n_cells]`` -> rows of the same shape, ``n_rows`` if missing."""
+        if self.table is not None:
+            return self.table[query]
+        if self.n_rows == 0:
+            return torch.zeros_like(query)
+        pos = torch.searchsorted(self.sorted_keys, query).clamp_(max=self.n_rows - 1)
+        return torch.where(self.sorted_keys[pos] == query, self.order[pos], self.n_rows)
+
+
+def _unique_keys(keys: Tensor, n_cells: int) -> Tensor:
+    """Sorted distinct values of ``keys`` in ``[0, n_cells)``; the value ``n_cells`` is dropped."""
+    if n_cells <= DENSE_TABLE_MAX_CELLS:
+        hit = torch.zeros(n_cells + 1, dtype=torch.bool, device=keys.device)
+        hit[keys.reshape(-1)] = True
+        return torch.nonzero(hit[:n_cells]).squeeze(1)
+    uniq = torch.unique(keys)
+    return uniq[uniq < n_cells]
+
+
+def _axis_taps(c: Tensor, kernel: int, stride: int, padding: int, n_dst: int, to_input: bool) -> Tensor:
+    """(N,) coordinates along one axis -> (N, kernel): the coordinate at the other end of each tap.
+
+    ``to_input``: from an output site o to the input it reads through tap k, ``o * s - p + k``.
+    Otherwise from an input site i to the output it feeds through tap k, ``(i + p - k) / s`` when
+    that is an integer (torch's cross-correlation). -1 where the tap leaves the grid ``[0, n_dst)``.
+    """
+    k = torch.arange(kernel, device=c.device)
+    if to_input:
+        t = c[:, None] * stride - padding + k
+        ok = (t >= 0) & (t < n_dst)
+    else:
+        num = c[:, None] + padding - k
+        t = torch.div(num, stride, rounding_mode="floor")
+        ok = (num >= 0) & (num % stride == 0) & (t < n_dst)
+    return torch.where(ok, t, -1)
+
+
+def _tap_keys(
+    coords: Tensor, dst_shape: Triple, n_batch: int, ks: Triple, st: Triple, pd: Triple, to_input: bool
+) -> tuple[Tensor, int]:
+    """Cell key at the other end of every kernel tap of every site.
+
+    Returns ``keys (N, K)`` into the batch of ``dst_shape`` grids (taps in weight order) and
+    ``n_cells``, the key used for taps that leave the grid.
+
+    The key is separable, ``b * nz * ny * nx + z * ny * nx + y * nx + x``, so the taps are found
+    per axis ((N, k) each) and only the final sum is (N, K). An axis whose tap leaves the grid
+    contributes ``n_cells``, which pushes the sum to ``>= n_cells``; the clamp maps it to
+    ``n_cells`` exactly.
+    """
+    nz, ny, nx = dst_shape
+    n_cells = n_batch * nz * ny * nx
+    parts = []
+    for axis, step in enumerate((ny * nx, nx, 1)):
+        t = _axis_taps(coords[:, 1 + axis], ks[axis], st[axis], pd[axis], dst_shape[axis], to_input)
+        parts.append(torch.where(t >= 0, t * step, n_cells))
+    base = (coords[:, 0] * (nz * ny * nx))[:, None, None, None]
+    keys = base + parts[0][:, :, None, None] + parts[1][:, None, :, None] + parts[2][:, None, None, :]
+    return keys.reshape(coords.shape[0], math.prod(ks)).clamp_(max=n_cells), n_cells
+
+
+def _batch_count(coords: Tensor) -> int:
+    return int(coords[:, 0].max()) + 1 if coords.shape[0] else 1
+
+
+def _invert_taps(reverse: Tensor, n_out: int) -> Tensor:
+    """(N_in, K) output row of each input tap (``n_out`` if none) -> (N_out, K) input row of each
+    output tap (``N_in`` if none).
+
+    Through one tap an input feeds at most one output and an output reads at most one input, so
+    every real slot is written once; the taps without an output all land in an extra row that is
+    dropped (whichever write wins there does not matter).
+    """
+    n_in, K = reverse.shape
+    table = torch.full(((n_out + 1) * K,), n_in, dtype=torch.long, device=reverse.device)
+    slots = reverse * K + torch.arange(K, device=reverse.device)
+    table[slots.reshape(-1)] = torch.arange(n_in, device=reverse.device).repeat_interleave(K)
+    return table.view(n_out + 1, K)[:n_out]
 
 
 @dataclass(frozen=True)
 class Rulebook:
-    """Which input rows feed which output rows, per kernel offset.
+    """Which input row each output row reads through each kernel tap.
 
     Attributes
     ----------
-    in_rows, out_rows : (M,) long; pairs sorted by kernel offset.
-    offset_counts : K ints; how many pairs each offset (in weight order) has.
+    neighbours : (N_out, K) long; the input row that output row o reads through tap k (taps in
+        the order of ``weight[:, :, kz, ky, kx]`` flattened), or ``N_in`` where there is none.
+    reverse : (N_in, K) long; the output row that input row i feeds through tap k, or ``N_out``.
+        None for a submanifold rulebook: there it is ``neighbours`` with the taps reversed
+        (o reads i through tap k exactly when i reads o through tap K - 1 - k).
     out_coords : (N_out, 4) long; (b, z, y, x) of the output sites.
     out_shape : (nz, ny, nx) of the output grid.
+
+    ``in_rows``, ``out_rows`` and ``offset_counts`` give the same connections as a flat list of
+    (input row, output row) pairs sorted by tap.
     """
 
-    in_rows: Tensor
-    out_rows: Tensor
-    offset_counts: list[int]
+    neighbours: Tensor
+    reverse: Tensor | None
     out_coords: Tensor
     out_shape: Triple
 
+    @property
+    def n_in(self) -> int:
+        return (self.neighbours if self.reverse is None else self.reverse).shape[0]
 
-def _pairs_by_offset(in_rows: Tensor, out_rows: Tensor, offset_id: Tensor, n_offsets: int):
-    """Sort flat pairs by kernel offset so that each offset's pairs are one contiguous slice."""
-    order = torch.argsort(offset_id, stable=True)
-    counts = torch.bincount(offset_id, minlength=n_offsets).tolist()  # one host sync per rulebook
-    return in_rows[order], out_rows[order], counts
+    @functools.cached_property
+    def _pairs(self) -> tuple[Tensor, Tensor, list[int]]:
+        tap, out_rows = torch.nonzero(self.neighbours.t() < self.n_in, as_tuple=True)
+        in_rows = self.neighbours[out_rows, tap]
+        counts = torch.bincount(tap, minlength=self.neighbours.shape[1]).tolist()
+        return in_rows, out_rows, counts
+
+    @property
+    def in_rows(self) -> Tensor:
+        """(M,) long input rows of the pairs, sorted by tap."""
+        return self._pairs[0]
+
+    @property
+    def out_rows(self) -> Tensor:
+        """(M,) long output rows of the pairs, sorted by tap."""
+        return self._pairs[1]
+
+    @property
+    def offset_counts(self) -> list[int]:
+        """K ints; how many pairs each tap has."""
+        return self._pairs[2]
 
 
 def subm_rulebook(coords: Tensor, spatial_shape: Triple, kernel_size: int | Triple) -> Rulebook:
@@ -153,26 +284,11 @@ def subm_rulebook(coords: Tensor, spatial_shape: Triple, kernel_size: int | Trip
     ks = _triple(kernel_size)
     if any(k % 2 == 0 for k in ks):
         raise ValueError(f"SubMConv3d needs odd kernel sizes, got {ks}")
-    device = coords.device
-    coords = coords.long()
-    if coords.shape[0] == 0:
-        empty = torch.zeros(0, dtype=torch.long, device=device)
-        return Rulebook(empty, empty, [0] * math.prod(ks), coords, tuple(spatial_shape))
-    keys = encode_coords(coords, spatial_shape)
-    keys_sorted, key_order = torch.sort(keys)
-    offsets = _kernel_offsets(ks, device) - torch.tensor([k // 2 for k in ks], device=device)  # (K, 3)
-    # Neighbour of output site o through offset k is the input at o + (k - k//2).
-    nb = coords[None, :, 1:] + offsets[:, None, :]  # (K, N, 3)
-    shape = torch.tensor(spatial_shape, device=device)
-    valid = ((nb >= 0) & (nb < shape)).all(dim=2)  # (K, N)
-    nb_coords = torch.cat([coords[None, :, :1].expand(len(offsets), -1, -1), nb], dim=2)
-    nb_keys = encode_coords(nb_coords.reshape(-1, 4), spatial_shape).view(len(offsets), -1)
-    pos = torch.searchsorted(keys_sorted, nb_keys).clamp(max=keys_sorted.numel() - 1)
-    found = valid & (keys_sorted[pos] == nb_keys)
-    off_id, out_rows = torch.nonzero(found, as_tuple=True)
-    in_rows = key_order[pos[off_id, out_rows]]
-    in_rows, out_rows, counts = _pairs_by_offset(in_rows, out_rows, off_id, len(offsets))
-    return Rulebook(in_rows, out_rows, counts, coords, tuple(spatial_shape))
+    coords, shape = coords.long(), tuple(spatial_shape)
+    pd = tuple(k // 2 for k in ks)
+    keys, n_cells = _tap_keys(coords, shape, _batch_count(coords), ks, (1, 1, 1), pd, to_input=True)
+    neighbours = _SiteLookup(encode_coords(coords, shape), n_cells).rows(keys)
+    return Rulebook(neighbours, None, coords, shape)
 
 
 def strided_rulebook(
@@ -189,26 +305,111 @@ def strided_rulebook(
     Output sites come out sorted by (b, z, y, x).
     """
     ks, st, pd = _triple(kernel_size), _triple(stride), _triple(padding)
-    device = coords.device
     coords = coords.long()
     out_shape = tuple((n + 2 * p - k) // s + 1 for n, k, s, p in zip(spatial_shape, ks, st, pd))
     if min(out_shape) < 1:
         raise ValueError(f"conv output would be empty: input {spatial_shape}, kernel {ks}, stride {st}")
-    offsets = _kernel_offsets(ks, device)  # (K, 3)
-    s = torch.tensor(st, device=device)
-    num = coords[None, :, 1:] + torch.tensor(pd, device=device) - offsets[:, None, :]  # (K, N, 3)
-    o = torch.div(num, s, rounding_mode="floor")
-    valid = ((num >= 0) & (num % s == 0) & (o < torch.tensor(out_shape, device=device))).all(dim=2)
-    off_id, in_rows = torch.nonzero(valid, as_tuple=True)
-    out_all = torch.cat([coords[in_rows, :1], o[off_id, in_rows]], dim=1)  # (M, 4)
-    out_keys, out_rows = torch.unique(encode_coords(out_all, out_shape), return_inverse=True)
-    ox = out_keys % out_shape[2]
-    oy = (out_keys // out_shape[2]) % out_shape[1]
-    oz = (out_keys // (out_shape[2] * out_shape[1])) % out_shape[0]
-    ob = out_keys // (out_shape[2] * out_shape[1] * out_shape[0])
-    out_coords = torch.stack([ob, oz, oy, ox], dim=1)
-    in_rows, out_rows, counts = _pairs_by_offset(in_rows, out_rows, off_id, len(offsets))
-    return Rulebook(in_rows, out_rows, counts, out_coords, out_shape)
+    keys, n_cells = _tap_keys(coords, out_shape, _batch_count(coords), ks, st, pd, to_input=False)
+    out_keys = _unique_keys(keys, n_cells)
+    reverse = _SiteLookup(out_keys, n_cells).rows(keys)  # (N_in, K)
+    neighbours = _invert_taps(reverse, out_keys.numel())  # (N_out, K)
+    return Rulebook(neighbours, reverse, decode_keys(out_keys, out_shape), out_shape)
+
+
+# Rows are gathered in chunks of about this many values (4 MB of float32): the gathered block
+# stays in cache for its GEMM, and memory does not grow with K * N.
+CHUNK_VALUES = 1 << 20
+
+
+def _row_chunks(n_rows: int, row_values: int) -> list[slice]:
+    step = max(1, CHUNK_VALUES // max(1, row_values))
+    return [slice(i, min(i + step, n_rows)) for i in range(0, n_rows, step)]
+
+
+def _with_zero_row(x: Tensor) -> Tensor:
+    """(N, C) -> (N + 1, C); row N is what a missing neighbour (index N) reads."""
+    return torch.cat([x, x.new_zeros((1, x.shape[1]))])
+
+
+def _conv_forward(x: Tensor, weight: Tensor, neighbours: Tensor) -> Tensor:
+    """(N_in, C_in) features, weight (C_out, C_in, K), neighbours (N_out, K) -> (N_out, C_out).
+
+    out[o] = sum_k x[neighbours[o, k]] @ W_k^T, computed as dense GEMMs over all K taps (missing
+    taps read a zero row) so that nothing is scattered. The gather runs on the narrower side:
+    - C_in <= C_out: gather x rows into (n, K * C_in), one GEMM with the (K * C_in, C_out) weight;
+    - C_in > C_out: first every input through every tap, (N_in, K * C_out), then gather tap k's
+      block of each neighbour and sum over the taps.
+    """
+    c_out, c_in, K = weight.shape
+    n_out = neighbours.shape[0]
+    out = x.new_empty((n_out, c_out))
+    if c_in <= c_out:
+        x_pad = _with_zero_row(x)
+        w = weight.permute(2, 1, 0).reshape(K * c_in, c_out)
+        for rows in _row_chunks(n_out, K * c_in):
+            gathered = x_pad.index_select(0, neighbours[rows].reshape(-1)).view(-1, K * c_in)
+            torch.mm(gathered, w, out=out[rows])
+    else:
+        y = _with_zero_row(x @ weight.permute(1, 2, 0).reshape(c_in, K * c_out)).view(-1, c_out)
+        taps = torch.arange(K, device=x.device)
+        for rows in _row_chunks(n_out, K * c_out):
+            gathered = y.index_select(0, (neighbours[rows] * K + taps).reshape(-1)).view(-1, K, c_out)
+            torch.sum(gathered, dim=1, out=out[rows])
+    return out
+
+
+def _conv_backward(
+    x: Tensor, grad_out: Tensor, weight: Tensor, reverse: Tensor, need_x: bool, need_w: bool
+) -> tuple[Tensor | None, Tensor | None]:
+    """Gradients of ``_conv_forward`` from the reverse taps (N_in, K), without any scatter.
+
+    With G = the output grads gathered through ``reverse``, (N_in, K * C_out) (block k holds
+    grad_out[reverse[i, k]]):
+        grad_x = G @ [W_0; ...; W_{K-1}]   (each W_k (C_out, C_in))
+        grad_W_k = x^T @ G_k
+    Returns grad_x (N_in, C_in) and grad_w (C_out, C_in, K) (None where not needed).
+    """
+    c_out, c_in, K = weight.shape
+    n_in = x.shape[0]
+    g_pad = _with_zero_row(grad_out)
+    w = weight.permute(2, 0, 1).reshape(K * c_out, c_in)
+    grad_x = x.new_empty((n_in, c_in)) if need_x else None
+    grad_w = x.new_zeros((c_in, K * c_out)) if need_w else None
+    for rows in _row_chunks(n_in, K * c_out):
+        gathered = g_pad.index_select(0, reverse[rows].reshape(-1)).view(-1, K * c_out)
+        if need_x:
+            torch.mm(gathered, w, out=grad_x[rows])
+        if need_w:
+            grad_w.addmm_(x[rows].t(), gathered)
+    if need_w:
+        grad_w = grad_w.view(c_in, K, c_out).permute(2, 0, 1)
+    return grad_x, grad_w
+
+
+class _RulebookConv(torch.autograd.Function):
+    """features (N_in, C_in), weight (C_out, C_in, K) -> (N_out, C_out) through a rulebook.
+
+    A custom backward because autograd of gather -> GEMM would scatter (index_add) the input
+    grads; the reverse taps turn that scatter into a gather. For a submanifold rulebook the
+    reverse taps are the neighbours read with the taps reversed, i.e. with the weight flipped.
+    """
+
+    @staticmethod
+    def forward(ctx, features: Tensor, weight: Tensor, neighbours: Tensor, reverse: Tensor | None) -> Tensor:
+        ctx.save_for_backward(features, weight, neighbours, reverse)
+        return _conv_forward(features, weight, neighbours)
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor):
+        features, weight, neighbours, reverse = ctx.saved_tensors
+        need_x, need_w = ctx.needs_input_grad[:2]
+        submanifold = reverse is None
+        if submanifold:
+            reverse, weight = neighbours, weight.flip(2)
+        grad_x, grad_w = _conv_backward(features, grad_out.contiguous(), weight, reverse, need_x, need_w)
+        if submanifold and grad_w is not None:
+            grad_w = grad_w.flip(2)
+        return grad_x, grad_w, None, None
 
 
 def apply_rulebook(features: Tensor, weight: Tensor, bias: Tensor | None, rb: Rulebook) -> Tensor:
@@ -224,16 +425,8 @@ def apply_rulebook(features: Tensor, weight: Tensor, bias: Tensor | None, rb: Ru
     -------
     (N_out, C_out) features at ``rb.out_coords``.
     """
-    c_out = weight.shape[0]
-    w = weight.reshape(c_out, weight.shape[1], -1)  # (C_out, C_in, K)
-    out = features.new_zeros((rb.out_coords.shape[0], c_out))
-    start = 0
-    for k, count in enumerate(rb.offset_counts):
-        if count == 0:
-            continue
-        sl = slice(start, start + count)
-        start += count
-        out.index_add_(0, rb.out_rows[sl], features[rb.in_rows[sl]] @ w[:, :, k].t())
+    w = weight.reshape(weight.shape[0], weight.shape[1], -1)  # (C_out, C_in, K)
+    out = _RulebookConv.apply(features.contiguous(), w, rb.neighbours, rb.reverse)
     if bias is not None:
         out = out + bias
     return out
