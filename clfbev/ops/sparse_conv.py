@@ -128,7 +128,8 @@ class _SiteLookup:
     the row ``n_rows``: the index of the zero row that the convolution appends to its input.
 
     Small grids use a dense table (one gather per query, no sort); large ones the sorted keys and
-    ``torch.searchsorted``. Both give the same rows.
+    ``torch.searchsorted``. Both give the same rows. (``index_select`` rather than ``table[q]``:
+    advanced indexing is several times slower on CPU.)
     """
 
     def __init__(self, keys: Tensor, n_cells: int):
@@ -136,39 +137,44 @@ class _SiteLookup:
         rows = torch.arange(self.n_rows, device=keys.device)
         if n_cells <= DENSE_TABLE_MAX_CELLS:
             self.table = torch.full((n_cells + 1,), self.n_rows, dtype=torch.long, device=keys.device)
-            self.table[keys] = rows
+            self.table.index_copy_(0, keys, rows)
         else:
             self.table = None
             self.sorted_keys, self.order = torch.sort(keys)
 
     def rows(self, query: Tensor) -> Tensor:
         """Keys of any shape, in ``[0, n_cells]`` -> rows of the same shape, ``n_rows`` if missing."""
+        flat = query.reshape(-1)
         if self.table is not None:
-            return self.table[query]
+            return self.table.index_select(0, flat).view(query.shape)
         if self.n_rows == 0:
             return torch.zeros_like(query)
-        pos = torch.searchsorted(self.sorted_keys, query).clamp_(max=self.n_rows - 1)
-        return torch.where(self.sorted_keys[pos] == query, self.order[pos], self.n_rows)
+        pos = torch.searchsorted(self.sorted_keys, flat).clamp_(max=self.n_rows - 1)
+        hit = self.sorted_keys.index_select(0, pos) == flat
+        return torch.where(hit, self.order.index_select(0, pos), self.n_rows).view(query.shape)
 
 
 def _unique_keys(keys: Tensor, n_cells: int) -> Tensor:
     """Sorted distinct values of ``keys`` in ``[0, n_cells)``; the value ``n_cells`` is dropped."""
     if n_cells <= DENSE_TABLE_MAX_CELLS:
         hit = torch.zeros(n_cells + 1, dtype=torch.bool, device=keys.device)
-        hit[keys.reshape(-1)] = True
+        hit.index_fill_(0, keys.reshape(-1), True)
         return torch.nonzero(hit[:n_cells]).squeeze(1)
     uniq = torch.unique(keys)
     return uniq[uniq < n_cells]
 
 
-def _axis_taps(c: Tensor, kernel: int, stride: int, padding: int, n_dst: int, to_input: bool) -> Tensor:
-    """(N,) coordinates along one axis -> (N, kernel): the coordinate at the other end of each tap.
+AxisTaps = tuple[range, range, range]
+
+
+def _axis_targets(c: Tensor, taps: range, stride: int, padding: int, n_dst: int, to_input: bool) -> Tensor:
+    """(N,) coordinates along one axis -> (N, len(taps)): the coordinate at the other end of each tap.
 
     ``to_input``: from an output site o to the input it reads through tap k, ``o * s - p + k``.
     Otherwise from an input site i to the output it feeds through tap k, ``(i + p - k) / s`` when
     that is an integer (torch's cross-correlation). -1 where the tap leaves the grid ``[0, n_dst)``.
     """
-    k = torch.arange(kernel, device=c.device)
+    k = torch.arange(taps.start, taps.stop, taps.step, device=c.device)
     if to_input:
         t = c[:, None] * stride - padding + k
         ok = (t >= 0) & (t < n_dst)
@@ -180,46 +186,47 @@ def _axis_taps(c: Tensor, kernel: int, stride: int, padding: int, n_dst: int, to
 
 
 def _tap_keys(
-    coords: Tensor, dst_shape: Triple, n_batch: int, ks: Triple, st: Triple, pd: Triple, to_input: bool
-) -> tuple[Tensor, int]:
-    """Cell key at the other end of every kernel tap of every site.
-
-    Returns ``keys (N, K)`` into the batch of ``dst_shape`` grids (taps in weight order) and
-    ``n_cells``, the key used for taps that leave the grid.
+    coords: Tensor, dst_shape: Triple, n_batch: int, taps: AxisTaps, st: Triple, pd: Triple, to_input: bool
+) -> Tensor:
+    """Cell key at the other end of each tap of each site: (N, T) into the batch of ``dst_shape``
+    grids, T = the product of the axes' taps (in weight order); ``n_cells`` where a tap leaves it.
 
     The key is separable, ``b * nz * ny * nx + z * ny * nx + y * nx + x``, so the taps are found
-    per axis ((N, k) each) and only the final sum is (N, K). An axis whose tap leaves the grid
+    per axis ((N, t) each) and only the final sum is (N, T). An axis whose tap leaves the grid
     contributes ``n_cells``, which pushes the sum to ``>= n_cells``; the clamp maps it to
-    ``n_cells`` exactly.
+    ``n_cells`` exactly. (The sums nest (N, tz) -> (N, tz * ty) -> (N, T) so that each
+    broadcast has a contiguous inner dimension.)
     """
     nz, ny, nx = dst_shape
     n_cells = n_batch * nz * ny * nx
-    parts = []
+    keys = (coords[:, 0] * (nz * ny * nx))[:, None]
     for axis, step in enumerate((ny * nx, nx, 1)):
-        t = _axis_taps(coords[:, 1 + axis], ks[axis], st[axis], pd[axis], dst_shape[axis], to_input)
-        parts.append(torch.where(t >= 0, t * step, n_cells))
-    base = (coords[:, 0] * (nz * ny * nx))[:, None, None, None]
-    keys = base + parts[0][:, :, None, None] + parts[1][:, None, :, None] + parts[2][:, None, None, :]
-    return keys.reshape(coords.shape[0], math.prod(ks)).clamp_(max=n_cells), n_cells
+        t = _axis_targets(coords[:, 1 + axis], taps[axis], st[axis], pd[axis], dst_shape[axis], to_input)
+        part = torch.where(t >= 0, t * step, n_cells)
+        keys = (keys[:, :, None] + part[:, None, :]).reshape(coords.shape[0], keys.shape[1] * part.shape[1])
+    return keys.clamp_(max=n_cells)
 
 
 def _batch_count(coords: Tensor) -> int:
     return int(coords[:, 0].max()) + 1 if coords.shape[0] else 1
 
 
-def _invert_taps(reverse: Tensor, n_out: int) -> Tensor:
-    """(N_in, K) output row of each input tap (``n_out`` if none) -> (N_out, K) input row of each
-    output tap (``N_in`` if none).
+@dataclass(frozen=True)
+class TapGroup:
+    """Input rows of one residue class (``(i + p) mod s`` per axis) and the taps they can feed.
 
-    Through one tap an input feeds at most one output and an output reads at most one input, so
-    every real slot is written once; the taps without an output all land in an extra row that is
-    dropped (whichever write wins there does not matter).
+    Attributes
+    ----------
+    rows : (n,) long; the input rows of the class.
+    taps : (t,) long; the kernel taps (weight order) through which such an input can reach an
+        output: ``k = (i + p) mod s`` per axis. The classes split the taps between them.
+    outputs : (n, t) long; the output row that ``rows[j]`` feeds through ``taps[m]``, ``N_out``
+        where none (only at the grid edge: an input always reaches an output through these taps).
     """
-    n_in, K = reverse.shape
-    table = torch.full(((n_out + 1) * K,), n_in, dtype=torch.long, device=reverse.device)
-    slots = reverse * K + torch.arange(K, device=reverse.device)
-    table[slots.reshape(-1)] = torch.arange(n_in, device=reverse.device).repeat_interleave(K)
-    return table.view(n_out + 1, K)[:n_out]
+
+    rows: Tensor
+    taps: Tensor
+    outputs: Tensor
 
 
 @dataclass(frozen=True)
@@ -230,9 +237,12 @@ class Rulebook:
     ----------
     neighbours : (N_out, K) long; the input row that output row o reads through tap k (taps in
         the order of ``weight[:, :, kz, ky, kx]`` flattened), or ``N_in`` where there is none.
-    reverse : (N_in, K) long; the output row that input row i feeds through tap k, or ``N_out``.
-        None for a submanifold rulebook: there it is ``neighbours`` with the taps reversed
-        (o reads i through tap k exactly when i reads o through tap K - 1 - k).
+    reverse : the output rows each input feeds, per tap, as ``TapGroup``s: a strided conv's
+        (N_in, K) table is mostly empty, as an input only reaches outputs through the taps of its
+        residue class (1 of 8 on average for a 3^3 kernel of stride 2), and the groups keep only
+        those. None for a submanifold rulebook: there the reverse table is ``neighbours`` with the
+        taps reversed (o reads i through tap k exactly when i reads o through tap K - 1 - k).
+    n_in : N_in, the number of input rows.
     out_coords : (N_out, 4) long; (b, z, y, x) of the output sites.
     out_shape : (nz, ny, nx) of the output grid.
 
@@ -241,13 +251,10 @@ class Rulebook:
     """
 
     neighbours: Tensor
-    reverse: Tensor | None
+    reverse: tuple[TapGroup, ...] | None
     out_coords: Tensor
     out_shape: Triple
-
-    @property
-    def n_in(self) -> int:
-        return (self.neighbours if self.reverse is None else self.reverse).shape[0]
+    n_in: int
 
     @functools.cached_property
     def _pairs(self) -> tuple[Tensor, Tensor, list[int]]:
@@ -286,9 +293,11 @@ def subm_rulebook(coords: Tensor, spatial_shape: Triple, kernel_size: int | Trip
         raise ValueError(f"SubMConv3d needs odd kernel sizes, got {ks}")
     coords, shape = coords.long(), tuple(spatial_shape)
     pd = tuple(k // 2 for k in ks)
-    keys, n_cells = _tap_keys(coords, shape, _batch_count(coords), ks, (1, 1, 1), pd, to_input=True)
+    n_cells = _batch_count(coords) * math.prod(shape)
+    all_taps = tuple(range(k) for k in ks)
+    keys = _tap_keys(coords, shape, n_cells // math.prod(shape), all_taps, (1, 1, 1), pd, to_input=True)
     neighbours = _SiteLookup(encode_coords(coords, shape), n_cells).rows(keys)
-    return Rulebook(neighbours, None, coords, shape)
+    return Rulebook(neighbours, None, coords, shape, coords.shape[0])
 
 
 def strided_rulebook(
@@ -309,11 +318,61 @@ def strided_rulebook(
     out_shape = tuple((n + 2 * p - k) // s + 1 for n, k, s, p in zip(spatial_shape, ks, st, pd))
     if min(out_shape) < 1:
         raise ValueError(f"conv output would be empty: input {spatial_shape}, kernel {ks}, stride {st}")
-    keys, n_cells = _tap_keys(coords, out_shape, _batch_count(coords), ks, st, pd, to_input=False)
-    out_keys = _unique_keys(keys, n_cells)
-    reverse = _SiteLookup(out_keys, n_cells).rows(keys)  # (N_in, K)
-    neighbours = _invert_taps(reverse, out_keys.numel())  # (N_out, K)
-    return Rulebook(neighbours, reverse, decode_keys(out_keys, out_shape), out_shape)
+    n_batch = _batch_count(coords)
+    n_cells = n_batch * math.prod(out_shape)
+    # Only the taps of each input's residue class can reach an output: look those up alone.
+    classes = _residue_classes(coords, ks, st, pd)
+    keys = [_tap_keys(coords[rows], out_shape, n_batch, taps, st, pd, to_input=False) for rows, taps in classes]
+    out_keys = _unique_keys(torch.cat([coords.new_zeros(0)] + [k.reshape(-1) for k in keys]), n_cells)
+    lookup = _SiteLookup(out_keys, n_cells)
+    groups = tuple(
+        TapGroup(rows, _flat_taps(ks, taps, coords.device), lookup.rows(k)) for (rows, taps), k in zip(classes, keys)
+    )
+    neighbours = _invert_taps(groups, out_keys.numel(), coords.shape[0], math.prod(ks), coords.device)
+    return Rulebook(neighbours, groups, decode_keys(out_keys, out_shape), out_shape, coords.shape[0])
+
+
+def _residue_classes(coords: Tensor, ks: Triple, st: Triple, pd: Triple) -> list[tuple[Tensor, AxisTaps]]:
+    """Input rows by residue class, with the taps each class can feed through.
+
+    Along an axis, input i reaches an output through tap k only if ``i + p - k`` is a multiple of
+    s, i.e. ``k = r (mod s)`` with the class ``r = (i + p) mod s``. Classes without inputs or
+    without taps (kernel smaller than the stride) are left out: those inputs feed nothing.
+    """
+    cls = torch.zeros(coords.shape[0], dtype=torch.long, device=coords.device)
+    for axis in range(3):
+        cls = cls * st[axis] + (coords[:, 1 + axis] + pd[axis]) % st[axis]
+    order = torch.argsort(cls, stable=True)
+    counts = torch.bincount(cls, minlength=math.prod(st)).tolist()
+    classes, start = [], 0
+    for c, count in enumerate(counts):
+        rows, start = order[start:start + count], start + count
+        r = (c // (st[1] * st[2]), (c // st[2]) % st[1], c % st[2])
+        taps = tuple(range(r[axis], ks[axis], st[axis]) for axis in range(3))
+        if count and all(len(t) for t in taps):
+            classes.append((rows, taps))
+    return classes
+
+
+def _flat_taps(ks: Triple, taps: AxisTaps, device: torch.device) -> Tensor:
+    """(T,) flat tap indices (weight order) of the product of per-axis taps."""
+    tap_ids = torch.arange(math.prod(ks), device=device).view(ks)
+    return tap_ids[taps[0].start::taps[0].step, taps[1].start::taps[1].step, taps[2].start::taps[2].step].reshape(-1)
+
+
+def _invert_taps(groups: tuple[TapGroup, ...], n_out: int, n_in: int, K: int, device: torch.device) -> Tensor:
+    """The reverse taps (output row each input feeds) -> (N_out, K) input row each output reads
+    through each tap (``n_in`` if none).
+
+    Through one tap an output reads at most one input, so every real slot is written once; the
+    taps that leave the grid all land in an extra row that is dropped (whichever write wins there
+    does not matter).
+    """
+    table = torch.full(((n_out + 1) * K,), n_in, dtype=torch.long, device=device)
+    for g in groups:
+        slots = g.outputs * K + g.taps
+        table.index_copy_(0, slots.reshape(-1), g.rows[:, None].expand_as(slots).reshape(-1))
+    return table.view(n_out + 1, K)[:n_out]
 
 
 # Rows are gathered in chunks of about this many values (4 MB of float32): the gathered block
@@ -361,13 +420,14 @@ def _conv_forward(x: Tensor, weight: Tensor, neighbours: Tensor) -> Tensor:
 def _conv_backward(
     x: Tensor, grad_out: Tensor, weight: Tensor, reverse: Tensor, need_x: bool, need_w: bool
 ) -> tuple[Tensor | None, Tensor | None]:
-    """Gradients of ``_conv_forward`` from the reverse taps (N_in, K), without any scatter.
+    """Gradients of ``_conv_forward`` from reverse taps, without any scatter.
 
-    With G = the output grads gathered through ``reverse``, (N_in, K * C_out) (block k holds
-    grad_out[reverse[i, k]]):
+    x (n, C_in) are input rows, ``reverse`` (n, K) the output row each feeds through each of the
+    K taps of ``weight`` (C_out, C_in, K) (``N_out`` where none). With G = the output grads
+    gathered through ``reverse``, (n, K * C_out) (block k holds grad_out[reverse[i, k]]):
         grad_x = G @ [W_0; ...; W_{K-1}]   (each W_k (C_out, C_in))
         grad_W_k = x^T @ G_k
-    Returns grad_x (N_in, C_in) and grad_w (C_out, C_in, K) (None where not needed).
+    Returns grad_x (n, C_in) and grad_w (C_out, C_in, K) (None where not needed).
     """
     c_out, c_in, K = weight.shape
     n_in = x.shape[0]
@@ -395,20 +455,30 @@ class _RulebookConv(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, features: Tensor, weight: Tensor, neighbours: Tensor, reverse: Tensor | None) -> Tensor:
-        ctx.save_for_backward(features, weight, neighbours, reverse)
+    def forward(ctx, features: Tensor, weight: Tensor, neighbours: Tensor, reverse) -> Tensor:
+        ctx.save_for_backward(features, weight, neighbours)
+        ctx.reverse = reverse  # tuple[TapGroup, ...] | None; index tensors, never differentiated
         return _conv_forward(features, weight, neighbours)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
-        features, weight, neighbours, reverse = ctx.saved_tensors
+        features, weight, neighbours = ctx.saved_tensors
         need_x, need_w = ctx.needs_input_grad[:2]
-        submanifold = reverse is None
-        if submanifold:
-            reverse, weight = neighbours, weight.flip(2)
-        grad_x, grad_w = _conv_backward(features, grad_out.contiguous(), weight, reverse, need_x, need_w)
-        if submanifold and grad_w is not None:
-            grad_w = grad_w.flip(2)
+        grad_out = grad_out.contiguous()
+        if ctx.reverse is None:
+            grad_x, grad_w = _conv_backward(features, grad_out, weight.flip(2), neighbours, need_x, need_w)
+            return grad_x, grad_w.flip(2) if need_w else None, None, None
+        # Each residue class owns its taps, so its rows and weight taps are written once each.
+        grad_x = torch.zeros_like(features) if need_x else None
+        grad_w = torch.zeros_like(weight) if need_w else None
+        for group in ctx.reverse:
+            gx, gw = _conv_backward(
+                features[group.rows], grad_out, weight[:, :, group.taps], group.outputs, need_x, need_w
+            )
+            if need_x:
+                grad_x[group.rows] = gx
+            if need_w:
+                grad_w[:, :, group.taps] = gw
         return grad_x, grad_w, None, None
 
 
