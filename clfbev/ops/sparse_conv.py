@@ -258,9 +258,9 @@ class Rulebook:
         residue class (1 of 8 on average for a 3^3 kernel of stride 2), and the groups keep only
         those. None for a submanifold rulebook: there the reverse table is ``neighbours`` with the
         taps reversed (o reads i through tap k exactly when i reads o through tap K - 1 - k).
-    n_in : N_in, the number of input rows.
     out_coords : (N_out, 4) long; (b, z, y, x) of the output sites.
     out_shape : (nz, ny, nx) of the output grid.
+    n_in : N_in, the number of input rows.
 
     ``in_rows``, ``out_rows`` and ``offset_counts`` give the same connections as a flat list of
     (input row, output row) pairs sorted by tap.
@@ -309,10 +309,10 @@ def subm_rulebook(coords: Tensor, spatial_shape: Triple, kernel_size: int | Trip
         raise ValueError(f"SubMConv3d needs odd kernel sizes, got {ks}")
     coords, shape = coords.long(), tuple(spatial_shape)
     pd = tuple(k // 2 for k in ks)
-    n_cells = _batch_count(coords) * math.prod(shape)
+    n_batch = _batch_count(coords)
     all_taps = tuple(range(k) for k in ks)
-    keys = _tap_keys(coords, shape, n_cells // math.prod(shape), all_taps, (1, 1, 1), pd, to_input=True)
-    neighbours = _SiteLookup(encode_coords(coords, shape), n_cells).rows(keys)
+    keys = _tap_keys(coords, shape, n_batch, all_taps, (1, 1, 1), pd, to_input=True)  # (N, K)
+    neighbours = _SiteLookup(encode_coords(coords, shape), n_batch * math.prod(shape)).rows(keys)
     return Rulebook(neighbours, None, coords, shape, coords.shape[0])
 
 
@@ -338,11 +338,15 @@ def strided_rulebook(
     n_cells = n_batch * math.prod(out_shape)
     # Only the taps of each input's residue class can reach an output: look those up alone.
     classes = _residue_classes(coords, ks, st, pd)
-    keys = [_tap_keys(coords.index_select(0, rows), out_shape, n_batch, taps, st, pd, to_input=False) for rows, taps in classes]
+    keys = [  # (n_class, T_class) output cell each input feeds through each of its taps
+        _tap_keys(coords.index_select(0, rows), out_shape, n_batch, taps, st, pd, to_input=False)
+        for rows, taps in classes
+    ]
     out_keys = _unique_keys(torch.cat([coords.new_zeros(0)] + [k.reshape(-1) for k in keys]), n_cells)
     lookup = _SiteLookup(out_keys, n_cells)
     groups = tuple(
-        TapGroup(rows, _flat_taps(ks, taps, coords.device), lookup.rows(k)) for (rows, taps), k in zip(classes, keys)
+        TapGroup(rows, _flat_taps(ks, taps, coords.device), lookup.rows(k))
+        for (rows, taps), k in zip(classes, keys)
     )
     neighbours = _invert_taps(groups, out_keys.numel(), coords.shape[0], math.prod(ks), coords.device)
     return Rulebook(neighbours, groups, decode_keys(out_keys, out_shape), out_shape, coords.shape[0])
@@ -373,7 +377,7 @@ def _residue_classes(coords: Tensor, ks: Triple, st: Triple, pd: Triple) -> list
 def _flat_taps(ks: Triple, taps: AxisTaps, device: torch.device) -> Tensor:
     """(T,) flat tap indices (weight order) of the product of per-axis taps."""
     tap_ids = torch.arange(math.prod(ks), device=device).view(ks)
-    return tap_ids[taps[0].start::taps[0].step, taps[1].start::taps[1].step, taps[2].start::taps[2].step].reshape(-1)
+    return tap_ids[tuple(slice(t.start, None, t.step) for t in taps)].reshape(-1)
 
 
 def _invert_taps(groups: tuple[TapGroup, ...], n_out: int, n_in: int, K: int, device: torch.device) -> Tensor:

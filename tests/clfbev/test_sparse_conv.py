@@ -205,8 +205,15 @@ def rulebook_pairs(rb):
 
 
 @pytest.mark.parametrize(
-    "kernel, stride, padding", [((3, 3, 3), None, None), ((1, 3, 5), None, None), ((3, 3, 3), (2, 2, 2), (1, 1, 1)),
-                                ((3, 3, 3), (2, 1, 1), (1, 1, 1)), ((2, 2, 2), (2, 2, 2), (0, 0, 0))],
+    "kernel, stride, padding",
+    [
+        ((3, 3, 3), None, None),  # None: submanifold
+        ((1, 3, 5), None, None),
+        ((3, 3, 3), (2, 2, 2), (1, 1, 1)),
+        ((3, 3, 3), (2, 1, 1), (1, 1, 1)),
+        ((2, 2, 2), (2, 2, 2), (0, 0, 0)),
+        ((1, 3, 3), (2, 2, 1), (0, 1, 1)),  # kernel 1 < stride 2 along z: odd-z inputs feed nothing
+    ],
 )
 def test_rulebook_pairs_match_brute_force(kernel, stride, padding):
     _, x, _ = random_grid(density=0.3, seed=7)
