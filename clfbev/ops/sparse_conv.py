@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -139,9 +140,9 @@ DENSE_TABLE_MAX_CELLS = 1 << 25
 class _SiteLookup:
     """Row of an active site from its cell key.
 
-    Keys index the cells of a batch of grids, ``[0, n_cells)``; the key ``n_cells`` stands for
-    "no cell" (a neighbour outside the grid). A cell without an active site, and "no cell", get
-    the row ``n_rows``: the index of the zero row that the convolution appends to its input.
+    Keys index the cells of a batch of (padded) grids, ``[0, n_cells)``. A cell without an active
+    site gets the row ``n_rows``: the index of the zero row that the convolution appends to its
+    input.
 
     Small grids use a dense table (one gather per query, no sort); large ones the sorted keys and
     ``torch.searchsorted``. Both give the same rows. (``index_select`` rather than ``table[q]``:
@@ -152,14 +153,14 @@ class _SiteLookup:
         self.n_rows = keys.numel()
         rows = torch.arange(self.n_rows, device=keys.device)
         if n_cells <= DENSE_TABLE_MAX_CELLS:
-            self.table = torch.full((n_cells + 1,), self.n_rows, dtype=torch.long, device=keys.device)
+            self.table = torch.full((n_cells,), self.n_rows, dtype=torch.long, device=keys.device)
             self.table.index_copy_(0, keys, rows)
         else:
             self.table = None
             self.sorted_keys, self.order = torch.sort(keys)
 
     def rows(self, query: Tensor) -> Tensor:
-        """Keys of any shape, in ``[0, n_cells]`` -> rows of the same shape, ``n_rows`` if missing."""
+        """Keys of any shape, in ``[0, n_cells)`` -> rows of the same shape, ``n_rows`` if missing."""
         flat = query.reshape(-1)
         if self.table is not None:
             return self.table.index_select(0, flat).view(query.shape)
@@ -171,60 +172,53 @@ class _SiteLookup:
 
 
 def _unique_keys(keys: Tensor, n_cells: int) -> Tensor:
-    """Sorted distinct values of ``keys`` in ``[0, n_cells)``; the value ``n_cells`` is dropped."""
+    """Sorted distinct values of ``keys`` (any shape, in ``[0, n_cells)``)."""
     if n_cells <= DENSE_TABLE_MAX_CELLS:
-        hit = torch.zeros(n_cells + 1, dtype=torch.bool, device=keys.device)
+        hit = torch.zeros(n_cells, dtype=torch.bool, device=keys.device)
         hit.index_fill_(0, keys.reshape(-1), True)
-        return torch.nonzero(hit[:n_cells]).squeeze(1)
-    uniq = torch.unique(keys)
-    return uniq[uniq < n_cells]
+        return torch.nonzero(hit).squeeze(1)
+    return torch.unique(keys)
 
 
-AxisTaps = tuple[range, range, range]
+class _PaddedGrid:
+    """A batch of ``shape`` grids with margins of ``lo`` / ``hi`` cells per axis.
 
-
-def _axis_targets(c: Tensor, taps: range, stride: int, padding: int, n_dst: int, to_input: bool) -> Tensor:
-    """(N,) coordinates along one axis -> (N, len(taps)): the coordinate at the other end of each tap.
-
-    ``to_input``: from an output site o to the input it reads through tap k, ``o * s - p + k``.
-    Otherwise from an input site i to the output it feeds through tap k, ``(i + p - k) / s`` when
-    that is an integer (torch's cross-correlation). -1 where the tap leaves the grid ``[0, n_dst)``.
+    The margins are wide enough for every kernel tap of every site to land on a cell, so a tap's
+    key is the site's key plus a constant per tap, with no range checks; margin cells never hold
+    a site, so a look-up there finds nothing, as it should. Keys are lexicographic in
+    (b, z, y, x), like ``encode_coords``.
     """
-    k = torch.arange(taps.start, taps.stop, taps.step, device=c.device)
-    if to_input:
-        t = c[:, None] * stride - padding + k
-        ok = (t >= 0) & (t < n_dst)
-    else:
-        num = c[:, None] + padding - k
-        t = torch.div(num, stride, rounding_mode="floor")
-        ok = (num >= 0) & (num % stride == 0) & (t < n_dst)
-    return torch.where(ok, t, -1)
 
+    def __init__(self, shape: Triple, n_batch: int, lo: Triple, hi: Triple):
+        self.shape, self.lo = shape, lo
+        self.dims = tuple(n + a + b for n, a, b in zip(shape, lo, hi))
+        self.n_cells = n_batch * math.prod(self.dims)
 
-def _tap_keys(
-    coords: Tensor, dst_shape: Triple, n_batch: int, taps: AxisTaps, st: Triple, pd: Triple, to_input: bool
-) -> Tensor:
-    """Cell key at the other end of each tap of each site: (N, T) into the batch of ``dst_shape``
-    grids, T = the product of the axes' taps (in weight order); ``n_cells`` where a tap leaves it.
+    def keys(self, coords: Tensor) -> Tensor:
+        """(N, 4) (b, z, y, x) in the unpadded grid (margins allowed) -> (N,) keys."""
+        (pz, py, px), (lz, ly, lx) = self.dims, self.lo
+        return ((coords[:, 0] * pz + coords[:, 1] + lz) * py + coords[:, 2] + ly) * px + coords[:, 3] + lx
 
-    The key is separable, ``b * nz * ny * nx + z * ny * nx + y * nx + x``, so the taps are found
-    per axis ((N, t) each) and only the final sum is (N, T). An axis whose tap leaves the grid
-    contributes ``n_cells``, which pushes the sum to ``>= n_cells``; the clamp maps it to
-    ``n_cells`` exactly. (The sums nest (N, tz) -> (N, tz * ty) -> (N, T) so that each
-    broadcast has a contiguous inner dimension.)
-    """
-    nz, ny, nx = dst_shape
-    n_cells = n_batch * nz * ny * nx
-    keys = (coords[:, 0] * (nz * ny * nx))[:, None]
-    for axis, step in enumerate((ny * nx, nx, 1)):
-        t = _axis_targets(coords[:, 1 + axis], taps[axis], st[axis], pd[axis], dst_shape[axis], to_input)
-        part = torch.where(t >= 0, t * step, n_cells)
-        keys = (keys[:, :, None] + part[:, None, :]).reshape(coords.shape[0], keys.shape[1] * part.shape[1])
-    return keys.clamp_(max=n_cells)
+    def tap_offsets(self, steps: list[tuple[int, int, int]], device: torch.device) -> Tensor:
+        """(T,) key offsets of (dz, dy, dx) steps."""
+        _, py, px = self.dims
+        return torch.tensor([(dz * py + dy) * px + dx for dz, dy, dx in steps], dtype=torch.long, device=device)
+
+    def coords(self, keys: Tensor) -> Tensor:
+        """(N,) keys -> (N, 4) (b, z, y, x) in the unpadded grid."""
+        return decode_keys(keys, self.dims) - keys.new_tensor([0, *self.lo])
+
+    def inside(self, keys: Tensor) -> Tensor:
+        """(N,) bool: the key's cell lies in the grid, not in a margin."""
+        c = self.coords(keys)[:, 1:]
+        return ((c >= 0) & (c < c.new_tensor(self.shape))).all(dim=1)
 
 
 def _batch_count(coords: Tensor) -> int:
     return int(coords[:, 0].max()) + 1 if coords.shape[0] else 1
+
+
+AxisTaps = tuple[range, range, range]
 
 
 @dataclass(frozen=True)
@@ -309,10 +303,11 @@ def subm_rulebook(coords: Tensor, spatial_shape: Triple, kernel_size: int | Trip
         raise ValueError(f"SubMConv3d needs odd kernel sizes, got {ks}")
     coords, shape = coords.long(), tuple(spatial_shape)
     pd = tuple(k // 2 for k in ks)
-    n_batch = _batch_count(coords)
-    all_taps = tuple(range(k) for k in ks)
-    keys = _tap_keys(coords, shape, n_batch, all_taps, (1, 1, 1), pd, to_input=True)  # (N, K)
-    neighbours = _SiteLookup(encode_coords(coords, shape), n_batch * math.prod(shape)).rows(keys)
+    grid = _PaddedGrid(shape, _batch_count(coords), pd, pd)
+    own = grid.keys(coords)  # (N,)
+    # Tap k of site o reads the cell o + k - k // 2.
+    steps = [tuple(k - p for k, p in zip(tap, pd)) for tap in itertools.product(*map(range, ks))]
+    neighbours = _SiteLookup(own, grid.n_cells).rows(own[:, None] + grid.tap_offsets(steps, coords.device))
     return Rulebook(neighbours, None, coords, shape, coords.shape[0])
 
 
@@ -334,26 +329,40 @@ def strided_rulebook(
     out_shape = tuple((n + 2 * p - k) // s + 1 for n, k, s, p in zip(spatial_shape, ks, st, pd))
     if min(out_shape) < 1:
         raise ValueError(f"conv output would be empty: input {spatial_shape}, kernel {ks}, stride {st}")
-    n_batch = _batch_count(coords)
-    n_cells = n_batch * math.prod(out_shape)
-    # Only the taps of each input's residue class can reach an output: look those up alone.
+    # Margins: a class's taps reach up to ceil(k / s) - 1 cells below its base output, and the
+    # base output of the last inputs may lie past the grid (when the conv drops them).
+    lo = tuple(-(-k // s) - 1 for k, s in zip(ks, st))
+    hi = tuple(max(0, (n - 1 + p) // s - (m - 1)) for n, p, s, m in zip(spatial_shape, pd, st, out_shape))
+    grid = _PaddedGrid(out_shape, _batch_count(coords), lo, hi)
     classes = _residue_classes(coords, ks, st, pd)
-    keys = [  # (n_class, T_class) output cell each input feeds through each of its taps
-        _tap_keys(coords.index_select(0, rows), out_shape, n_batch, taps, st, pd, to_input=False)
-        for rows, taps in classes
-    ]
-    out_keys = _unique_keys(torch.cat([coords.new_zeros(0)] + [k.reshape(-1) for k in keys]), n_cells)
-    lookup = _SiteLookup(out_keys, n_cells)
+    keys = [_class_tap_keys(coords, grid, rows, r, taps, st, pd) for rows, r, taps in classes]
+    candidates = _unique_keys(torch.cat([coords.new_zeros(0)] + [k.reshape(-1) for k in keys]), grid.n_cells)
+    out_keys = candidates[grid.inside(candidates)]  # sorted: output sites in (b, z, y, x) order
+    lookup = _SiteLookup(out_keys, grid.n_cells)
     groups = tuple(
         TapGroup(rows, _flat_taps(ks, taps, coords.device), lookup.rows(k))
-        for (rows, taps), k in zip(classes, keys)
+        for (rows, _, taps), k in zip(classes, keys)
     )
     neighbours = _invert_taps(groups, out_keys.numel(), coords.shape[0], math.prod(ks), coords.device)
-    return Rulebook(neighbours, groups, decode_keys(out_keys, out_shape), out_shape, coords.shape[0])
+    return Rulebook(neighbours, groups, grid.coords(out_keys), out_shape, coords.shape[0])
 
 
-def _residue_classes(coords: Tensor, ks: Triple, st: Triple, pd: Triple) -> list[tuple[Tensor, AxisTaps]]:
-    """Input rows by residue class, with the taps each class can feed through.
+def _class_tap_keys(
+    coords: Tensor, grid: _PaddedGrid, rows: Tensor, r: Triple, taps: AxisTaps, st: Triple, pd: Triple
+) -> Tensor:
+    """(n, T) output cell that each input of a residue class feeds through each of the class's taps.
+
+    Tap ``k = r + j s`` (per axis) of input i reaches ``o = (i + p - r) / s - j``: a base cell
+    (an exact division, by the choice of r) minus j.
+    """
+    c = coords.index_select(0, rows)
+    base = torch.cat([c[:, :1], (c[:, 1:] + c.new_tensor(pd) - c.new_tensor(r)) // c.new_tensor(st)], dim=1)
+    steps = [(-jz, -jy, -jx) for jz, jy, jx in itertools.product(*(range(len(t)) for t in taps))]
+    return grid.keys(base)[:, None] + grid.tap_offsets(steps, coords.device)
+
+
+def _residue_classes(coords: Tensor, ks: Triple, st: Triple, pd: Triple) -> list[tuple[Tensor, Triple, AxisTaps]]:
+    """Input rows by residue class r, with r and the taps the class can feed through.
 
     Along an axis, input i reaches an output through tap k only if ``i + p - k`` is a multiple of
     s, i.e. ``k = r (mod s)`` with the class ``r = (i + p) mod s``. Classes without inputs or
@@ -370,7 +379,7 @@ def _residue_classes(coords: Tensor, ks: Triple, st: Triple, pd: Triple) -> list
         r = (c // (st[1] * st[2]), (c // st[2]) % st[1], c % st[2])
         taps = tuple(range(r[axis], ks[axis], st[axis]) for axis in range(3))
         if count and all(len(t) for t in taps):
-            classes.append((rows, taps))
+            classes.append((rows, r, taps))
     return classes
 
 
@@ -385,8 +394,8 @@ def _invert_taps(groups: tuple[TapGroup, ...], n_out: int, n_in: int, K: int, de
     through each tap (``n_in`` if none).
 
     Through one tap an output reads at most one input, so every real slot is written once; the
-    taps that leave the grid all land in an extra row that is dropped (whichever write wins there
-    does not matter).
+    taps into a margin (no output) all land in an extra row that is dropped (whichever write wins
+    there does not matter).
     """
     table = torch.full(((n_out + 1) * K,), n_in, dtype=torch.long, device=device)
     for g in groups:
