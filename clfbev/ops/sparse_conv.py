@@ -19,10 +19,11 @@ give the same pairs swapped), i.e. the same table with the weight flipped; for a
 each input can only feed through the taps of its residue class ``(i + p) mod s`` (1 in 8 of a
 3^3 kernel of stride 2), and the reverse tables keep only those.
 
-Rulebooks are built without sorting: each site's tap cells have separable keys, computed per
-axis, and a dense int64 table over the batch of grids maps cells to rows (sorted keys and
-``torch.searchsorted`` above ``DENSE_TABLE_MAX_CELLS`` cells). Python loops run over chunks of
-rows and residue classes, never over sites.
+Rulebooks are built without sorting: on a grid padded by the kernel's reach, the key of a
+site's tap cell is the site's key plus a constant per tap, and a dense int64 table over the
+batch of padded grids maps cells to rows (sorted keys and ``torch.searchsorted`` above
+``DENSE_TABLE_MAX_CELLS`` cells). Python loops run over chunks of rows and residue classes,
+never over sites.
 
 Semantics match ``nn.Conv3d`` (cross-correlation, weight ``(out, in, kz, ky, kx)``, same init):
 
