@@ -83,11 +83,12 @@ class BEVBackbone(nn.Module):
             self.ups.append(nn.Sequential(up, nn.BatchNorm2d(up_ch, eps=BN_EPS, momentum=BN_MOMENTUM), nn.ReLU(True)))
             c = out
         self.out_channels = len(channels) * up_ch
+        self.to(memory_format=torch.channels_last)   # faster convolutions (see CameraEncoder)
 
     def forward(self, bev: Tensor) -> Tensor:
         """bev (B, in_ch, H, W) -> (B, out_channels, H, W)."""
         H, W = bev.shape[2:]
-        outs, x = [], bev
+        outs, x = [], bev.contiguous(memory_format=torch.channels_last)
         for stage, up in zip(self.stages, self.ups):
             x = stage(x)
             # A stride-2 conv rounds odd sizes up, so the upsampled map may be 1 cell too big.
