@@ -524,7 +524,9 @@ def plot_loss_curve(metrics_jsonl: str | Path, out_png: str | Path) -> Path:
     val = [r for r in rows if "val/NDS" in r]
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=110)
     steps = np.array([r["step"] for r in train])
-    for key, style in (("train/loss", "-"), ("train/loss_cls", ":"), ("train/loss_reg", "--"), ("train/loss_dir", "-.")):
+    parts = (("train/loss", "-"), ("train/loss_cls", ":"), ("train/loss_reg", "--"), ("train/loss_dir", "-."),
+             ("train/loss_depth", (0, (1, 3))))
+    for key, style in (p for p in parts if any(p[0] in r for r in train)):
         y, x = np.array([r.get(key, np.nan) for r in train]), steps
         k = max(1, len(y) // 50)
         if k > 1:    # a trailing running mean makes the trend readable; raw values are in the JSONL

@@ -52,9 +52,11 @@ def main() -> int:
         f"`clfbev train --config tiny --variant {run['variant']}`: {tc['epochs'] if not tc['max_steps'] else tc['max_steps']} "
         f"{'epochs' if not tc['max_steps'] else 'steps'}, batch {tc['batch_size']}, AdamW lr {tc['lr']:g} "
         f"(warmup {tc['warmup_frac']:.0%} then cosine), weight decay {tc['weight_decay']:g}, grad clip {tc['grad_clip']:g}, "
-        f"augmentation {'on' if tc['augment'] else 'off'}, seed {tc['seed']}. Checkpoint: best val NDS.",
+        f"augmentation {'on' if tc['augment'] else 'off'}, GT-paste {tc.get('gt_paste', 0)} objects per sample "
+        f"(none in the last {tc.get('gt_paste_fade', 0):.0%} of the steps), seed {tc['seed']}: the tiny recipe. "
+        "Checkpoint: the final weights (`last.pt`).",
         "",
-        "![training loss and validation metrics](loss_curve.png)",
+        "![training losses](loss_curve.png)",
         "",
         "## Evaluation (official nuScenes DetectionEval on sim-val)",
         "",

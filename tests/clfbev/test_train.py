@@ -70,6 +70,26 @@ def test_lr_schedule_warmup_then_cosine():
     assert lr_at(100, 100, tc) == pytest.approx(1e-5)        # the floor at the end
 
 
+def test_the_recipe_is_the_default_and_options_override_it(tmp_path):
+    import argparse
+    from clfbev.train import add_arguments, recipe, train_config_from
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    parse = lambda *a: train_config_from(p.parse_args(["--data", "d", "--out", "o", *a]))  # noqa: E731
+    assert parse() == recipe("tiny", "full")
+    assert parse("--variant", "camera") == recipe("tiny", "camera")
+    assert recipe("tiny", "camera").gt_paste == 0 < recipe("tiny", "lidar").gt_paste   # no lidar-only objects
+    assert parse("--config", "paper") == TrainConfig()                                   # the paper's recipe
+    custom = tmp_path / "c.yaml"
+    custom.write_text("preset: paper\nfusion_dim: 128\n")
+    assert parse("--config", str(custom)).lr == TrainConfig().lr                          # its preset's recipe
+    tc = parse("--lr", "5e-4", "--no-augment", "--gt-paste", "0", "--epochs", "3")
+    assert (tc.lr, tc.augment, tc.gt_paste, tc.epochs) == (5e-4, False, 0, 3)
+    assert tc.batch_size == recipe("tiny", "full").batch_size
+    with pytest.raises(ValueError, match="--gt-paste-fade"):
+        parse("--gt-paste-fade", "1.5")
+
+
 @pytest.mark.parametrize("n,bs,world", [(7, 2, 1), (7, 2, 2), (6, 1, 2), (3, 2, 2)])
 def test_epoch_batches_shard_the_permutation(n, bs, world):
     shards = [epoch_batches(n, bs, seed=5, epoch=3, rank=r, world=world) for r in range(world)]
