@@ -135,18 +135,25 @@ def detection_loss(
     )
     loss_cls = (focal * targets.cls_weights).sum() / norm
 
-    # Box residuals (eq. 6, 7): Smooth-L1 per residual, the angle through sin-difference.
-    pred_theta, target_theta = sin_difference(flat.box_deltas[..., 6], targets.box_targets[..., 6])
-    diff = flat.box_deltas - targets.box_targets
-    diff = torch.cat([diff[..., :6], (pred_theta - target_theta)[..., None], diff[..., 7:]], dim=-1)
-    code_w = flat.box_deltas.new_tensor(weights.code_weights[:code_size])
-    per_code = smooth_l1(diff, weights.smooth_l1_beta) * targets.box_weights * code_w
-    loss_reg_theta = per_code[..., 6].sum() / norm
-    loss_reg = (per_code.sum() - per_code[..., 6].sum()) / norm
+    # Box residuals (eq. 6, 7): Smooth-L1 per residual, the angle through sin-difference. Only
+    # positives have a box (their weights are 0 elsewhere), so only their rows are computed:
+    # a few hundred of the ~330k anchors of a 128 x 128 grid.
+    pos_index = torch.nonzero(positives.reshape(-1)).flatten()
+    deltas = flat.box_deltas.reshape(-1, code_size).index_select(0, pos_index)
+    box_targets = targets.box_targets.reshape(-1, code_size).index_select(0, pos_index)
+    box_weights = targets.box_weights.reshape(-1, code_size).index_select(0, pos_index)
+    pred_theta, target_theta = sin_difference(deltas[:, 6], box_targets[:, 6])
+    diff = deltas - box_targets
+    diff = torch.cat([diff[:, :6], (pred_theta - target_theta)[:, None], diff[:, 7:]], dim=-1)
+    code_w = deltas.new_tensor(weights.code_weights[:code_size])
+    per_code = smooth_l1(diff, weights.smooth_l1_beta) * box_weights * code_w
+    loss_reg_theta = per_code[:, 6].sum() / norm
+    loss_reg = (per_code.sum() - per_code[:, 6].sum()) / norm
 
     # Direction (eq. 8): only positives have a heading to classify.
-    ce = direction_cross_entropy(flat.dir_logits, targets.dir_targets)
-    loss_dir = (ce * positives.to(ce.dtype)).sum() / norm
+    n_bins = flat.dir_logits.shape[-1]
+    dir_logits = flat.dir_logits.reshape(-1, n_bins).index_select(0, pos_index)
+    loss_dir = direction_cross_entropy(dir_logits, targets.dir_targets.reshape(-1)[pos_index]).sum() / norm
 
     total = weights.cls * loss_cls + weights.reg * (loss_reg + loss_reg_theta) + weights.dir * loss_dir
     return {
