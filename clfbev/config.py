@@ -215,12 +215,15 @@ def _plain(x):
 
 
 def tiny() -> ModelConfig:
-    """For a 2-core CPU: +-51.2 m, 0.4 m voxels -> 256 x 256 x 20 grid -> 64 x 64 BEV (1.6 m
-    cells, 64 channels); ResNet-18 width 16 on 128 x 352 images at stride 8; 9 depth bins of
-    6 m; 8 x 8 window attention (over 64 x 64 = 4096 cells exact attention would be the
-    slowest part). The narrow sparse stages (8, 16, 32) matter most for speed: the pure-torch
-    sparse conv costs grow with the active sites, which each stride-2 conv multiplies. One
-    training step of 'full' takes about 0.7-0.9 s per sample on one shared CPU core."""
+    """For a 2-core CPU: +-51.2 m, 0.4 m voxels -> 256 x 256 x 20 grid; the second sparse
+    downsampling halves z only, so the BEV is 128 x 128 (0.8 m cells, 64 channels), the grid
+    on which anchor heads are known to work (SECOND / OpenPCDet use 0.8 m or finer; at 1.6 m a
+    pedestrian or a cone often had no anchor to match). A finer voxel would give the same grid
+    at 2.4 times the step time. ResNet-18 width 16 on 192 x 352 images (704 x 396 resized
+    keeping the aspect, then cropped) at stride 8; 51 depth bins of 1 m from 1 m (6 m bins
+    left rings of BEV cells that no camera feature reached); 8 x 8 window attention (exact
+    attention over 16,384 cells would be the slowest part by far). One training step of
+    'full' costs about 1 CPU second per sample (docs/benchmarks.md)."""
     return ModelConfig()
 
 

@@ -73,6 +73,8 @@ class TrainConfig:
     processes.
     ckpt_minutes : also write ``last.pt`` this often (besides every epoch). save_every_steps :
     also write it every N steps (0: off). val_split : split validated every epoch ('' : none).
+    precise_bn_batches : after the last step, BatchNorm's running statistics are recomputed
+    over this many training batches (:func:`precise_batchnorm`; 0: off).
 
     The defaults are the paper's GPU recipe; :func:`recipe` gives the one of a model preset,
     which is what ``clfbev train --config NAME`` starts from.
@@ -97,6 +99,7 @@ class TrainConfig:
     workers: int = 0
     ckpt_minutes: float = 10.0
     save_every_steps: int = 0
+    precise_bn_batches: int = 32
 
 
 def recipe(preset: str, variant: str) -> TrainConfig:
@@ -169,6 +172,43 @@ def epoch_batches(n: int, batch_size: int, seed: int, epoch: int, rank: int, wor
     order = (order * math.ceil(total / n))[:total]
     mine = order[rank::world]
     return [mine[i:i + batch_size] for i in range(0, len(mine), batch_size)]
+
+
+# The epoch index whose samples re-estimate BatchNorm (no training epoch reaches it).
+PRECISE_BN_EPOCH = 1_000_000
+
+
+@torch.no_grad()
+def precise_batchnorm(model: CLFusionBEV, train_set: NuScenesDetection, tc: TrainConfig,
+                      augment: AugmentConfig | None) -> None:
+    """Recompute every BatchNorm's running statistics with the final weights, as the exact
+    average over ``tc.precise_bn_batches`` training batches (augmented as in training, nothing
+    pasted, as in the fade's last steps).
+
+    With momentum 0.01 (SECOND's) the running statistics average the last few hundred steps,
+    computed by weights that kept moving: in a run of a few hundred steps they lag the weights
+    the evaluation uses (precise BN, Wu & Johnson 2021). Deterministic: the batches are those of
+    a fixed epoch index no training epoch reaches, so a resumed run gets the same statistics.
+    """
+    norms = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+    if not norms or tc.precise_bn_batches <= 0:
+        return
+    device = next(model.parameters()).device
+    samples = EpochSamples(train_set, tc.seed, PRECISE_BN_EPOCH, augment, model.cfg.pc_range)
+    batches = epoch_batches(len(train_set), tc.batch_size, tc.seed, PRECISE_BN_EPOCH, 0, 1)[: tc.precise_bn_batches]
+    momenta = [m.momentum for m in norms]
+    for m in norms:
+        m.reset_running_stats()
+        m.momentum = None            # a cumulative average over the batches below
+    was_training = model.training
+    model.train()
+    for indices in batches:
+        batch = collate([samples[i] for i in indices]).to(device)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
+            model(batch)
+    for m, momentum in zip(norms, momenta):
+        m.momentum = momentum
+    model.train(was_training)
 
 
 class LossModule(nn.Module):
@@ -367,6 +407,8 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
             if step == (epoch + 1) * steps_per_epoch:
                 epoch += 1
             if is_main:
+                if step >= total:
+                    precise_batchnorm(model, train_set, tc, augment)
                 if val_set is not None:
                     last_val = validate(model, val_set, run / "val")
                     log.log(step, epoch, {"val/mAP": last_val["mean_ap"], "val/NDS": last_val["nd_score"]})

@@ -90,6 +90,29 @@ def test_the_recipe_is_the_default_and_options_override_it(tmp_path):
         parse("--gt-paste-fade", "1.5")
 
 
+def test_precise_batchnorm_is_the_exact_average_over_its_batches(tiny_dataset, micro):
+    """After precise_batchnorm, a BatchNorm's running mean is the mean of the batch means it saw
+    (cumulative, not exponential), its momentum is restored, and a second call repeats it."""
+    from clfbev.config import load_config
+    from clfbev.data import NuScenesDetection
+    from clfbev.model import CLFusionBEV
+    from clfbev.train import precise_batchnorm
+    cfg = load_config(micro)
+    ds = NuScenesDetection(tiny_dataset, "v1.0-sim", "sim-train", cfg.data_config())
+    torch.manual_seed(0)
+    model = CLFusionBEV(cfg, "lidar").eval()
+    bn = model.lidar_encoder.vfe.point_mlp[1]
+    seen = []
+    bn.register_forward_pre_hook(lambda m, inputs: seen.append(inputs[0].mean(dim=0)))
+    tc = TrainConfig(batch_size=1, precise_bn_batches=2)
+    precise_batchnorm(model, ds, tc, None)
+    assert len(seen) == 2 and not model.training and bn.momentum == 0.01
+    torch.testing.assert_close(bn.running_mean, torch.stack(seen).mean(dim=0), atol=1e-6, rtol=1e-5)
+    first = bn.running_mean.clone()
+    precise_batchnorm(model, ds, tc, None)
+    assert torch.equal(bn.running_mean, first)
+
+
 @pytest.mark.parametrize("n,bs,world", [(7, 2, 1), (7, 2, 2), (6, 1, 2), (3, 2, 2)])
 def test_epoch_batches_shard_the_permutation(n, bs, world):
     shards = [epoch_batches(n, bs, seed=5, epoch=3, rank=r, world=world) for r in range(world)]
