@@ -19,7 +19,9 @@ import re
 import shutil
 import signal
 import socket
+import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import Iterator
 
@@ -29,6 +31,7 @@ from .settings import MakeSettings
 
 LOCAL = "local"              # --ray without an ADDRESS: start a private Ray instance
 CONNECT_TIMEOUT_S = 5.0      # a cluster address that does not answer within this is unreachable
+JOIN_TIMEOUT_S = 30.0        # joining a cluster that answers takes a few seconds
 MAX_RETRIES = 3              # Ray reruns a scene whose worker process or node was lost
 # Test-only: "SCENE:MARKER" makes the first attempt at that scene kill its own worker process
 # (SIGKILL, after rendering, before its bytes are returned) and create MARKER, so that Ray's
@@ -75,11 +78,18 @@ class RayRun:
             return cls(ray, cpus=workers)
         host_port = _cluster_address(ray, address)
         _probe(address, host_port)
+        # ray.init has no timeout of its own: at an address that accepts connections but is no
+        # Ray cluster (a dashboard port, say) it retries for many minutes.
+        watchdog = threading.Timer(JOIN_TIMEOUT_S, _give_up, args=(address, host_port))
+        watchdog.daemon = True
+        watchdog.start()
         try:
             ray.init(address=host_port, **common)
         except (ConnectionError, RuntimeError) as e:
             raise ConfigError(f"--ray {address}: cannot join the Ray cluster at {host_port} "
                               f"({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+        finally:
+            watchdog.cancel()
         return cls(ray, cpus=None)
 
     def threads_per_task(self, todo: int) -> int:
@@ -174,6 +184,14 @@ def _probe(address: str, host_port: str) -> None:
         return
     where = host_port if address == host_port else f"{host_port}, found by {address}"
     raise ConfigError(f"--ray {address}: cannot reach the Ray cluster at {where} ({reason})")
+
+
+def _give_up(address: str, host_port: str) -> None:
+    """The end of a join that did not complete within JOIN_TIMEOUT_S. The cluster is joined before
+    anything is written, so ending the process here leaves nothing half-done."""
+    print(f"simgen: error: --ray {address}: no Ray cluster answers at {host_port} "
+          f"(joining it took over {JOIN_TIMEOUT_S:g} s)", file=sys.stderr, flush=True)
+    os._exit(2)      # simgen.cli's exit code for bad input; the main thread is stuck inside Ray
 
 
 def _test_kill_once(idx: int, scratch: Path) -> None:
