@@ -76,7 +76,7 @@ class RayRun:
         if local:
             ray.init(num_cpus=workers, include_dashboard=False, **common)
             return cls(ray, cpus=workers)
-        host_port = _cluster_address(ray, address)
+        host_port = _cluster_address(address)
         _probe(address, host_port)
         # ray.init has no timeout of its own: at an address that accepts connections but is no
         # Ray cluster (a dashboard port, say) it retries for many minutes.
@@ -87,7 +87,7 @@ class RayRun:
             ray.init(address=host_port, **common)
         except (ConnectionError, RuntimeError) as e:
             raise ConfigError(f"--ray {address}: cannot join the Ray cluster at {host_port} "
-                              f"({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+                              f"({_join_failure(e)})") from None
         finally:
             watchdog.cancel()
         return cls(ray, cpus=None)
@@ -152,7 +152,7 @@ def write_scene(dataroot: Path, idx: int, files: dict[str, bytes]) -> None:
     W.write_atomic(dataroot / part, files[part])
 
 
-def _cluster_address(ray, address: str) -> str:
+def _cluster_address(address: str) -> str:
     """``HOST:PORT`` of the cluster to join: as given, or for ``auto`` the one that ``ray start``
     recorded on this node (or ``$RAY_ADDRESS``), found as ``ray.init`` finds it."""
     if address != "auto":
@@ -184,6 +184,16 @@ def _probe(address: str, host_port: str) -> None:
         return
     where = host_port if address == host_port else f"{host_port}, found by {address}"
     raise ConfigError(f"--ray {address}: cannot reach the Ray cluster at {where} ({reason})")
+
+
+def _join_failure(e: Exception) -> str:
+    """Why ``ray.init`` could not join, in a few words."""
+    detail = f"{e} {e.__cause__ or ''}"
+    if "InvalidAuthToken" in detail:
+        # Ray sends its token unasked only to a cluster it finds itself (`auto`).
+        return ("it uses Ray's token authentication: set RAY_AUTH_MODE=token, with the cluster's "
+                "token in ~/.ray/auth_token")
+    return str(e).splitlines()[0] if str(e) else type(e).__name__
 
 
 def _give_up(address: str, host_port: str) -> None:

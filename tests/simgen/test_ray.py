@@ -2,12 +2,15 @@
 after the driver or a worker process was killed mid-run; bad input is one line and exit 2."""
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -113,6 +116,55 @@ def test_killed_worker_is_retried_by_ray(tiny_dataset, tmp_path):
     assert_nothing_left(driver)
 
 
+@needs_ray
+def test_joins_an_existing_cluster(tiny_dataset, tmp_path):
+    """`ray start --head` (on the loopback interface, 2 CPUs), then `make --ray HOST:PORT`
+    joins it: the same bytes. Its workers are the cluster's, started by `ray start`."""
+    port = free_port()
+    # Ray would replace 127.0.0.1 by the machine's address; this keeps every process on loopback.
+    # Token authentication is left out, as on a cluster started without RAY_AUTH_MODE=token
+    # (`ray start` turns it on by itself only where ~/.ray holds a token).
+    env = {**os.environ, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_AUTH_MODE": "disabled"}
+    ray_cli = Path(sys.executable).with_name("ray")
+    # Its own temporary folder, short: Ray's socket paths inside it must fit in 107 bytes.
+    ray_tmp = tempfile.mkdtemp(prefix="ray-", dir="/tmp")
+    head = subprocess.Popen([str(ray_cli), "start", "--head", "--block", f"--port={port}", "--node-ip-address=127.0.0.1",
+                             "--num-cpus=2", "--include-dashboard=false", "--disable-usage-stats", f"--temp-dir={ray_tmp}"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.time() + 120
+        while not answers(port) and time.time() < deadline and head.poll() is None:
+            time.sleep(0.2)
+        assert head.poll() is None and answers(port), "the Ray head did not start"
+        out = tmp_path / "data"
+        driver = make_ray(out, f"127.0.0.1:{port}", "--workers", "1", *TINY_ARGS, env=env)
+        assert file_hashes(out) == file_hashes(tiny_dataset)
+        assert_nothing_left(driver)
+    finally:
+        # The head and all it started form one process group (its own session). A SIGTERM would
+        # make it drain for 30 s first.
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(head.pid, signal.SIGKILL)
+        head.wait(timeout=60)
+        shutil.rmtree(ray_tmp, ignore_errors=True)
+    assert_nothing_left(head.pid)
+
+
+def free_port() -> int:
+    """A loopback port with nothing listening on it (now)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def answers(port: int) -> bool:
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=1).close()
+        return True
+    except OSError:
+        return False
+
+
 def _bad_ray(tmp_path, *args, python_prefix: str = "") -> tuple[str, float]:
     """Run `make` with bad --ray input: exit 2, one line without a traceback, nothing written.
     Returns that line and the seconds it took."""
@@ -137,9 +189,7 @@ def test_ray_without_the_extra_names_it(tmp_path):
 
 @needs_ray
 def test_unreachable_ray_cluster_is_one_line(tmp_path):
-    with socket.socket() as s:           # a loopback port with nothing listening on it
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     line, seconds = _bad_ray(tmp_path, "--ray", f"127.0.0.1:{port}")
     assert line.startswith(f"simgen: error: --ray 127.0.0.1:{port}: cannot reach the Ray cluster at "
                            f"127.0.0.1:{port} (")
