@@ -1,5 +1,6 @@
 """`simgen make --ray`: the bytes of the local pool on a local Ray instance (loopback only), also
-after the driver or a worker process was killed mid-run; bad input is one line and exit 2."""
+after the driver or a worker process was killed mid-run, and on a cluster started with `ray
+start`; no process is left behind; bad input is one line and exit 2, with nothing written."""
 from __future__ import annotations
 
 import contextlib
@@ -21,10 +22,12 @@ from test_determinism import file_hashes
 
 needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
                                reason="the optional extra 'ray' is not installed (pip install -e .[ray])")
+
+
 def make_ray(out: Path, *args, env: dict | None = None) -> int:
-    """`simgen make --out OUT --ray ...` as a user runs it. Returns the driver's pid, which is
-    also the process group of every process of its Ray instance (Ray makes the driver a group
-    leader so that it can reap them)."""
+    """`simgen make --out OUT --ray ...` as a user runs it. Returns the driver's pid: with a local
+    instance also the process group of all of its processes (Ray makes the driver a group leader,
+    so that it can reap them)."""
     proc = subprocess.Popen([sys.executable, "-m", "simgen.cli", "make", "--out", str(out), "--ray", *map(str, args)],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     stdout, stderr = proc.communicate(timeout=600)
