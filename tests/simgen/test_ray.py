@@ -25,46 +25,44 @@ needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
 
 
 def make_ray(out: Path, *args, env: dict | None = None) -> int:
-    """`simgen make --out OUT --ray ...` as a user runs it. Returns the driver's pid: with a local
-    instance also the process group of all of its processes (Ray makes the driver a group leader,
-    so that it can reap them)."""
+    """`simgen make --out OUT --ray ...` as a user runs it, in a session of its own. Returns the
+    driver's pid, which is that session's id: every process the run starts (Ray's included)
+    belongs to it, even once its parent is gone."""
     proc = subprocess.Popen([sys.executable, "-m", "simgen.cli", "make", "--out", str(out), "--ray", *map(str, args)],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     stdout, stderr = proc.communicate(timeout=600)
     assert proc.returncode == 0, f"simgen make --ray failed ({proc.returncode}):\n{stderr}"
     assert "simgen: 2 scenes, 6 samples," in stdout
     return proc.pid
 
 
-def processes_in_group(pgid: int) -> dict[int, str]:
-    """The live (not zombie) processes of a process group, with their names."""
+def processes_in_session(sid: int) -> dict[int, str]:
+    """The live (not zombie) processes of a session, with their names."""
     found = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
             text = stat.read_text()
         except OSError:        # gone meanwhile
             continue
-        state, _ppid, group = text[text.rindex(")") + 2:].split()[:3]
-        if int(group) == pgid and state != "Z":
+        state, _ppid, _group, session = text[text.rindex(")") + 2:].split()[:4]
+        if int(session) == sid and state != "Z":
             found[int(stat.parent.name)] = text[text.index("(") + 1:text.rindex(")")]
     return found
 
 
-def assert_nothing_left(pgid: int, within_s: float = 30.0, tolerate: tuple[str, ...] = ()) -> None:
-    """No process of the run survives it (a killed driver's Ray instance is reaped by Ray), but
-    those whose name starts with one of ``tolerate``: they are ended here."""
+def assert_nothing_left(sid: int, within_s: float = 30.0, tolerate: tuple[str, ...] = ()) -> None:
+    """No process of the run's session survives it, but those whose name starts with one of
+    ``tolerate``: they are ended here."""
     deadline = time.time() + within_s
     while True:
-        left = processes_in_group(pgid)
+        left = processes_in_session(sid)
         unexpected = {pid: name for pid, name in left.items() if not name.startswith(tolerate)}
         if not unexpected or time.time() > deadline:
             break
         time.sleep(0.2)
     for pid in left:           # leave a clean machine, failing or not
-        try:
+        with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
     assert not unexpected, f"processes left by the run: {unexpected}"
 
 
@@ -87,7 +85,7 @@ def test_killed_driver_resumes_without_redoing_finished_scenes(tiny_dataset, tmp
     out = tmp_path / "data"
     # One CPU: the scenes run one after the other, so the driver dies with scene 1 in flight.
     cmd = [sys.executable, "-m", "simgen.cli", "make", "--out", str(out), "--ray", "--workers", "1", *TINY_ARGS]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 240
     while not part_stats(out) and time.time() < deadline and proc.poll() is None:
         time.sleep(0.05)
@@ -144,8 +142,8 @@ def test_joins_an_existing_cluster(tiny_dataset, tmp_path):
         assert file_hashes(out) == file_hashes(tiny_dataset)
         assert_nothing_left(driver)
     finally:
-        # The head and all it started form one process group (its own session). A SIGTERM would
-        # make it drain for 30 s first.
+        # The head's process group holds all it started but the workers, which end with its
+        # raylet; the check below covers its whole session. A SIGTERM would drain for 30 s first.
         with contextlib.suppress(ProcessLookupError):
             os.killpg(head.pid, signal.SIGKILL)
         head.wait(timeout=60)
