@@ -46,6 +46,11 @@ Keys (degradation and renderers):
                                 turns exactly these into fog returns on this sweep (docs/fog.md)
   mitsuba_s_per_image_800x450   one path-traced camera image (rgb pass) at mitsuba_spp
   demo_total_s                  `bash scripts/demo.sh` from scratch (only with --only demo)
+Keys (cluster backend, only with --only ray, about 8 min):
+  make_ray_overhead_pct         `make --ray` (a local Ray instance, 2 CPUs) against the local pool of 2
+                                workers, 8 urban scenes x 10 samples at 1600x900: 100 (t_ray / t_pool - 1),
+                                median of 3 alternating pairs (each listed, and their seconds)
+  make_ray_part_mb_per_sample   the bytes a scene sends back to the driver (all its files), per sample
 """
 from __future__ import annotations
 
@@ -457,6 +462,34 @@ def bench_demo(quick: bool) -> dict:
     return {"demo_total_s": time.perf_counter() - t0, **{f"demo_{k}": v for k, v in timing.items() if k != "scenes"}}
 
 
+def bench_ray(quick: bool) -> dict:
+    """`make --ray` (a local Ray instance of 2 CPUs) against the local pool of 2 workers: 8 urban
+    scenes x 10 samples at the preset's 1600x900, as `simgen make` makes them by default. Pairs
+    alternate which goes first, on fresh dataroots; the overhead is 100 (t_ray / t_pool - 1), the
+    median of the pairs. Also the size of a scene's part (every file it writes) per sample."""
+    import shutil
+    n, k, res = (2, 2, "800x450") if quick else (8, 10, "")
+    pool_s, ray_s, part_mb = [], [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(1 if quick else 3):
+            runs = [("pool", []), ("ray", ["--ray"])]
+            for name, extra in runs if r % 2 == 0 else runs[::-1]:
+                out = Path(tmp) / f"{name}{r}"
+                cmd = [sys.executable, "-m", "simgen.cli", "make", "--out", str(out), "--scenes", str(n),
+                       "--samples-per-scene", str(k), "--workers", "2", "--preset", "urban", "--quiet", *extra]
+                cmd += ["--resolution", res] if res else []
+                t = time.perf_counter()
+                subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+                (ray_s if extra else pool_s).append(time.perf_counter() - t)
+                files = [p for p in out.rglob("*") if p.is_file() and "v1.0-sim" not in p.parts]
+                part_mb.append(sum(p.stat().st_size for p in files) / 1e6 / (n * k))
+                shutil.rmtree(out)
+    pct = [100 * (b / a - 1) for a, b in zip(pool_s, ray_s)]
+    return {"make_ray_overhead_pct": float(np.median(pct)), "make_ray_overhead_pct_runs": [round(v, 1) for v in pct],
+            "make_ray_pairs_s": [[round(a, 1), round(b, 1)] for a, b in zip(pool_s, ray_s)],
+            "make_ray_part_mb_per_sample": round(float(np.median(part_mb)), 2)}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", action="store_true", help="print one JSON object")
@@ -464,17 +497,18 @@ def main() -> int:
     ap.add_argument("--only", nargs="*", default=None,
                     help="subset: lidar render make memory clfbev eval fog mitsuba, or scaling (16-scene make "
                          "pairs, about 6 min) or demo (runs scripts/demo.sh, about 25 min): these two are not in "
-                         "the default set")
+                         "the default set, nor is ray (`make --ray` against the local pool, about 8 min)")
     args = ap.parse_args()
     repeats = 5 if args.quick else 20
     parts = {"lidar": lambda: bench_lidar(repeats), "render": lambda: bench_render(repeats),
              "make": lambda: bench_make(args.quick), "memory": lambda: bench_worker_memory(args.quick),
              "clfbev": lambda: bench_clfbev(args.quick), "eval": lambda: bench_eval(args.quick),
              "fog": lambda: bench_fog(args.quick), "mitsuba": lambda: bench_mitsuba(args.quick),
-             "demo": lambda: bench_demo(args.quick), "scaling": lambda: bench_scaling(args.quick)}
+             "demo": lambda: bench_demo(args.quick), "scaling": lambda: bench_scaling(args.quick),
+             "ray": lambda: bench_ray(args.quick)}
     result = {"machine": {"cpus": os.cpu_count()}}
     for name, fn in parts.items():
-        if (args.only is None and name not in ("demo", "scaling")) or (args.only is not None and name in args.only):
+        if (args.only is None and name not in ("demo", "scaling", "ray")) or (args.only is not None and name in args.only):
             result.update(fn())
     if args.json:
         print(json.dumps(result, indent=1))

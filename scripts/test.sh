@@ -4,5 +4,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh
+# The tests cover `simgen make --ray`, so its optional extra too (once; ray pulls in no torch).
+.venv/bin/python -c "import ray" 2>/dev/null || .venv/bin/python -m pip install -q -e ".[dev,ray]"
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 exec .venv/bin/python -m pytest -q "$@"

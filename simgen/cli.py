@@ -77,7 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
     mk.add_argument("--preset", default="urban", help="preset name (see `simgen presets`) or a YAML file [urban]")
     mk.add_argument("--seed", type=int, default=0, help="global seed; scene i uses (seed, i) [0]")
     mk.add_argument("--workers", type=_positive_int("--workers"), default=os.cpu_count() or 1,
-                    help="worker processes [number of cores]")
+                    help="worker processes, or the CPUs of the local Ray instance of --ray [number of cores]")
+    mk.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                    help="run the scenes as Ray tasks (the same bytes): on a local Ray instance, or with "
+                         "ADDRESS (auto, or HOST:PORT of the head node) on an existing cluster; needs the "
+                         "optional extra: pip install -e .[ray]")
     mk.add_argument("--samples-per-scene", type=_positive_int("--samples-per-scene"), default=10,
                     help="key frames (2 Hz) per scene [10]")
     mk.add_argument("--resolution", type=_resolution, default=None,
@@ -164,10 +168,13 @@ def _make(args) -> int:
                            occlusion=args.occlusion)
     if not re.fullmatch(r"[A-Za-z0-9._-]+", args.version):
         raise ConfigError(f"--version {args.version!r}: use letters, digits, '.', '_' and '-' only")
+    if args.ray is not None:
+        from .ray_backend import parse_address
+        parse_address(args.ray)
     check_writable(args.out)
     settings = MakeSettings(cfg, args.scenes, args.seed, args.samples_per_scene, args.version,
                             args.val_fraction, args.gl)
-    summary = make(settings, args.out, args.workers, progress=not args.quiet)
+    summary = make(settings, args.out, args.workers, progress=not args.quiet, ray=args.ray)
     print(f"simgen: {summary['scenes']} scenes, {summary['samples']} samples, "
           f"{summary['tables']['sample_annotation']} annotations in {args.out}/{args.version} "
           f"({summary['seconds']:.1f} s)")

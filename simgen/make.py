@@ -1,4 +1,5 @@
-"""`simgen make`: the scenes of a dataset in worker processes, with a progress bar, resumable.
+"""`simgen make`: the scenes of a dataset in worker processes or Ray tasks, with a progress bar,
+resumable.
 
 This module and what it imports stay light (no trimesh, pyrender or Embree): the coordinating
 process only checks the dataroot, hands out scene indices and merges the tables. Each worker
@@ -11,7 +12,9 @@ import json
 import multiprocessing as mp
 import os
 import time
+from contextlib import closing
 from pathlib import Path
+from typing import Iterator
 
 from . import degrade as D
 from . import writer as W
@@ -87,40 +90,60 @@ def write_degradation_record(s: MakeSettings, dataroot: Path) -> None:
     W.write_atomic(dataroot / s.version / "degradation.json", W.dump_json(record))
 
 
-def make(s: MakeSettings, dataroot: Path, workers: int, progress: bool = True) -> dict:
-    """Generate (or finish) a dataset. Returns a summary with timings and table sizes."""
+def make(s: MakeSettings, dataroot: Path, workers: int, progress: bool = True, ray: str | None = None) -> dict:
+    """Generate (or finish) a dataset. Returns a summary with timings and table sizes.
+
+    ``ray``: None runs the scenes on a local process pool of ``workers``; otherwise they are Ray
+    tasks (:mod:`simgen.ray_backend`): ``"local"`` starts a Ray instance with ``workers`` CPUs,
+    ``"auto"`` or ``"HOST:PORT"`` joins a cluster. The bytes are the same either way."""
     from tqdm import tqdm
     dataroot = Path(dataroot)
-    todo = check_resume(s, dataroot)
     start = time.perf_counter()
-    done_samples = 0
-    bar = tqdm(total=s.n_scenes, initial=s.n_scenes - len(todo), unit="scene", disable=not progress,
-               desc="simgen make", dynamic_ncols=True)
+    cluster = None
+    if ray is not None:
+        # Joined before anything is written: an unreachable cluster leaves the dataroot untouched.
+        from .ray_backend import RayRun
+        cluster = RayRun.connect(ray, workers)
+    bar = None
+    try:
+        todo = check_resume(s, dataroot)
+        done_samples = 0
+        bar = tqdm(total=s.n_scenes, initial=s.n_scenes - len(todo), unit="scene", disable=not progress,
+                   desc="simgen make", dynamic_ncols=True)
+        scenes = cluster.scenes(s, dataroot, todo) if cluster else _pool_scenes(s, dataroot, todo, workers)
+        with closing(scenes) as results:
+            for _idx, n in results:
+                done_samples += n
+                bar.update(1)
+                bar.set_postfix(samples_per_s=f"{done_samples / (time.perf_counter() - start):.2f}")
+    finally:
+        if bar is not None:
+            bar.close()
+        if cluster is not None:
+            cluster.close()
+    counts = W.merge(dataroot, s.version, s.n_scenes, s.val_fraction)
+    write_degradation_record(s, dataroot)
+    return {"scenes": s.n_scenes, "generated_scenes": len(todo), "samples": counts["sample"],
+            "seconds": time.perf_counter() - start, "tables": counts}
+
+
+def _pool_scenes(s: MakeSettings, dataroot: Path, todo: list[int], workers: int) -> Iterator[tuple[int, int]]:
+    """The scenes ``todo`` on a local process pool (each worker writes its scene's files into
+    ``dataroot``); yields ``(scene index, samples)`` in completion order."""
     n_proc = max(1, min(workers, len(todo)))
     # The cores left to each worker process cast its lidar rays in parallel.
     threads = max(1, len(os.sched_getaffinity(0)) // n_proc)
     tasks = [(s, dataroot, i, threads) for i in todo]
     if n_proc == 1:
-        results = map(_task, tasks)
-        pool = None
-    else:
-        ctx = mp.get_context("spawn")
-        pool = ctx.Pool(n_proc, initializer=_worker_init, initargs=(s.gl,))
-        results = pool.imap_unordered(_task, tasks)
+        yield from map(_task, tasks)
+        return
+    ctx = mp.get_context("spawn")
+    pool = ctx.Pool(n_proc, initializer=_worker_init, initargs=(s.gl,))
     try:
-        for _idx, n in results:
-            done_samples += n
-            bar.update(1)
-            bar.set_postfix(samples_per_s=f"{done_samples / (time.perf_counter() - start):.2f}")
+        yield from pool.imap_unordered(_task, tasks)
     finally:
-        if pool is not None:
-            # Every result is in (or the run is being abandoned): the workers hold nothing
-            # unwritten, since a scene's part file is its last, atomic write. Stopping them
-            # spares the wait for their interpreters to finalise (about 0.7 s with 2 workers).
-            pool.terminate()
-            pool.join()
-        bar.close()
-    counts = W.merge(dataroot, s.version, s.n_scenes, s.val_fraction)
-    write_degradation_record(s, dataroot)
-    return {"scenes": s.n_scenes, "generated_scenes": len(todo), "samples": counts["sample"],
-            "seconds": time.perf_counter() - start, "tables": counts}
+        # Every result is in (or the run is being abandoned): the workers hold nothing
+        # unwritten, since a scene's part file is its last, atomic write. Stopping them
+        # spares the wait for their interpreters to finalise (about 0.7 s with 2 workers).
+        pool.terminate()
+        pool.join()
