@@ -27,6 +27,7 @@ RES=${RES:-704x396}             # camera resolution WxH
 STEPS=${STEPS:-1200}            # optimizer steps per run
 OUT=${OUT:-benchmark_out}       # data and run folders
 RESULTS=${RESULTS:-docs/results.md}
+THREADS=${THREADS:-$(nproc)}    # torch threads per training; 1 to run two benchmarks side by side
 DATA_SEED=1
 VAL_FRACTION=0.2
 DATA=$OUT/data
@@ -83,7 +84,7 @@ ckpt_step() {  # the optimizer step a last.pt was written at
   $PY -c 'import sys; from clfbev.checkpoint import load_checkpoint; print(load_checkpoint(sys.argv[1])["step"])' "$1"
 }
 record() {  # run folder, stage, extra JSON fields: one line per part in RUN/wall.jsonl
-  echo "{\"stage\": \"$2\", $3, \"threads\": $(nproc), \"end\": \"$(date -u +%Y-%m-%dT%H:%M:%SZ)\"}" >> "$1/wall.jsonl"
+  echo "{\"stage\": \"$2\", $3, \"threads\": $THREADS, \"end\": \"$(date -u +%Y-%m-%dT%H:%M:%SZ)\"}" >> "$1/wall.jsonl"
 }
 table() {
   $PY scripts/results_table.py "$OUT" --runs "${ALL_RUNS[@]}" --out "$RESULTS"
@@ -116,7 +117,7 @@ for run in "${RUNS[@]}"; do
     # and the evaluated checkpoint is last.pt, the weights after the last step.
     t0=$(date +%s); rc=0
     .venv/bin/clfbev train --data "$DATA" --config tiny --variant "$variant" --seed "$seed" --out "$dir" \
-      --max-steps "$STEPS" --val-split '' --threads "$(nproc)" "${resume[@]}" || rc=$?
+      --max-steps "$STEPS" --val-split '' --threads "$THREADS" "${resume[@]}" || rc=$?
     # The part's time counts even when it was interrupted: the table reports the wall time spent.
     to=$step
     [ -f "$dir/last.pt" ] && to=$(ckpt_step "$dir/last.pt")
