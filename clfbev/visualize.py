@@ -531,7 +531,7 @@ def plot_loss_curve(metrics_jsonl: str | Path, out_png: str | Path) -> Path:
         k = max(1, len(y) // 50)
         if k > 1:    # a trailing running mean makes the trend readable; raw values are in the JSONL
             y, x = np.convolve(y, np.ones(k) / k, mode="valid"), steps[k - 1:]
-        ax.plot(x, y, style, label=key.split("/")[1])
+        ax.plot(x, y, linestyle=style, label=key.split("/")[1])
     ax.set_yscale("log")
     ax.set_xlabel("step")
     ax.set_ylabel("loss")
