@@ -47,13 +47,14 @@ NO_GT = (torch.zeros(0, 9), torch.zeros(0, dtype=torch.int64))
 
 # ---------------------------------------------------------------- the query cell
 
-@pytest.mark.parametrize("cell", [(40, 13), (0, 0), (63, 63), (31, 32)])
+@pytest.mark.parametrize("cell", [(40, 13), (0, 0), (127, 127), (63, 64)])
 def test_query_lands_on_the_best_detections_centre_cell(cell):
     """The best detection's centre, anywhere inside a cell, picks that cell: the one whose
     anchors the model centres there (the head's own grid, not a second convention)."""
     anchors = make_anchors(CLASSES, CFG.head_feature_size, CFG.pc_range)     # (ny, nx, cls, rot, 7)
     cx, cy = (float(v) for v in anchors[cell][0, 0, :2])
-    xy = (cx + 0.7, cy - 0.7)                                                  # cells are 1.6 m
+    half = 0.5 * (CFG.pc_range[3] - CFG.pc_range[0]) / CFG.head_feature_size[1]
+    xy = (cx + 0.9 * half, cy - 0.9 * half)                                    # near the cell's corner
     dets = _dets([[xy[0], xy[1], 0, 4, 2, 1.5, 0.3], [-20, 30, 0, 4, 2, 1.5, 0]], [0.9, 0.4], [0, 1])
     dets = Detections(dets.boxes.flip(0), dets.scores.flip(0), dets.labels.flip(0))   # best one second
     q = choose_query(dets, *NO_GT, CLASSES, CFG.pc_range, CFG.head_feature_size)
@@ -68,18 +69,19 @@ def test_without_detection_the_query_is_the_gt_box_nearest_the_ego():
     gt[:, :2] = torch.tensor([[20.0, 0.0], [-3.0, 4.0], [0.0, -30.0]])
     q = choose_query(NO_DETS, gt, torch.tensor([0, 3, 1]), CLASSES, CFG.pc_range, CFG.head_feature_size)
     assert q.xy == (-3.0, 4.0)
-    assert q.cell == cell_of((-3.0, 4.0), CFG.pc_range, CFG.head_feature_size) == (34, 30)
+    # 0.8 m cells from -51.2 m: row floor(55.2 / 0.8) = 69, column floor(48.2 / 0.8) = 60.
+    assert q.cell == cell_of((-3.0, 4.0), CFG.pc_range, CFG.head_feature_size) == (69, 60)
     assert q.what == f"no detection: the GT {CLASSES[3]} nearest the ego, 5.0 m away"
 
 
 def test_a_query_point_off_the_map_or_nothing_to_query_is_refused():
     with pytest.raises(ValueError, match="outside the BEV map"):
         cell_of((51.2, 0.0), CFG.pc_range, CFG.head_feature_size)      # the range is half-open
-    assert cell_of((51.19, -51.2), CFG.pc_range, CFG.head_feature_size) == (0, 63)
+    assert cell_of((51.19, -51.2), CFG.pc_range, CFG.head_feature_size) == (0, 127)
     with pytest.raises(ValueError, match="--cell"):
         choose_query(NO_DETS, *NO_GT, CLASSES, CFG.pc_range, CFG.head_feature_size)
     q = choose_query(NO_DETS, *NO_GT, CLASSES, CFG.pc_range, CFG.head_feature_size, xy=(10.0, 5.0))
-    assert q.cell == (35, 38) and q.box is None
+    assert q.cell == (70, 76) and q.box is None        # floor(56.2 / 0.8), floor(61.2 / 0.8)
 
 
 # ---------------------------------------------------------------- the zoom
@@ -175,7 +177,7 @@ def test_model_maps_are_per_head_distributions_over_the_bev():
 
 def _fake_map(name, seed, heads=2):
     rng = np.random.default_rng(seed)
-    w = rng.random((heads, 64, 64)) ** 8
+    w = rng.random((heads, *CFG.head_feature_size)) ** 8
     return AttentionMap(name, "a query over a key map", w / w.sum(axis=(1, 2), keepdims=True),
                         BEVAttention(heads, "window", window=8))
 
