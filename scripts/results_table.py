@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
+
+from clfbev import atomic
 
 VERSION = "v1.0-sim"
 # The devkit's five TP errors (nuscenes.eval.detection.constants.TP_METRICS) and their columns.
@@ -291,19 +291,6 @@ def render(out: Path, run_names: list[str], now: float | None = None) -> str:
     return "\n".join(lines)
 
 
-def write_atomic(path: Path, text: str) -> None:
-    """Replace ``path`` with ``text``: a temporary file in the same folder, then one rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out", type=Path, help="the benchmark's folder (benchmark_out)")
@@ -319,7 +306,8 @@ def main(argv: list[str] | None = None) -> int:
     except FileNotFoundError as e:
         print(f"results_table: {e}", file=sys.stderr)
         return 2
-    write_atomic(args.results, text)
+    args.results.parent.mkdir(parents=True, exist_ok=True)
+    atomic.write_text(args.results, text)
     n_done = sum((args.out / n / "eval" / "metrics_summary.json").exists() for n in args.runs)
     print(f"benchmark: table {args.results} ({n_done} of {len(args.runs)} runs done)")
     return 0

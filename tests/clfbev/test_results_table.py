@@ -183,7 +183,7 @@ def test_the_write_is_atomic(bench, monkeypatch):
 
     def crash(src, dst):
         raise OSError("disk full")
-    monkeypatch.setattr(rt.os, "replace", crash)
+    monkeypatch.setattr(rt.atomic.os, "replace", crash)
     with pytest.raises(OSError):
         rt.main([str(bench), "--runs", *RUNS, "--out", str(out)])
     assert out.read_text() == "old table\n"                                     # the old file, whole
