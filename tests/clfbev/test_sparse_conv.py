@@ -56,6 +56,18 @@ def at(dense, coords):
     return dense[coords[:, 0], :, coords[:, 1], coords[:, 2], coords[:, 3]]
 
 
+def assert_same_grads(sparse_out, dense_out, x, dense, conv, ref):
+    """Back-propagate one random cotangent through the sparse and the dense result and compare
+    the input and weight (and bias) gradients."""
+    r = torch.randn(dense_out.shape, dtype=torch.float64)
+    (sparse_out * r).sum().backward()
+    (dense_out * r).sum().backward()
+    torch.testing.assert_close(x.features.grad, at(dense.grad, x.coords), **TOL)
+    torch.testing.assert_close(conv.weight.grad, ref.weight.grad, **TOL)
+    if conv.bias is not None:
+        torch.testing.assert_close(conv.bias.grad, ref.bias.grad, **TOL)
+
+
 def test_init_matches_conv3d():
     torch.manual_seed(3)
     a = SubMConv3d(CIN, COUT, 3)
@@ -115,12 +127,7 @@ def test_strided_matches_dense_everywhere(kernel, stride, padding):
     full = out.dense() + bias_elsewhere
     torch.testing.assert_close(full, y, **TOL)
 
-    r = torch.randn(y.shape, dtype=torch.float64)
-    (full * r).sum().backward()
-    (y * r).sum().backward()
-    torch.testing.assert_close(x.features.grad, at(dense.grad, x.coords), **TOL)
-    torch.testing.assert_close(conv.weight.grad, ref.weight.grad, **TOL)
-    torch.testing.assert_close(conv.bias.grad, ref.bias.grad, **TOL)
+    assert_same_grads(full, y, x, dense, conv, ref)
 
 
 def test_batch_samples_do_not_mix():
@@ -276,11 +283,7 @@ def test_subm_both_channel_paths_match_dense(c_in, c_out):
     dense.requires_grad_(True)
     out, y = conv(x).features, at(ref(dense), x.coords)
     torch.testing.assert_close(out, y, **TOL)
-    r = torch.randn(out.shape, dtype=torch.float64)
-    (out * r).sum().backward()
-    (y * r).sum().backward()
-    torch.testing.assert_close(x.features.grad, at(dense.grad, x.coords), **TOL)
-    torch.testing.assert_close(conv.weight.grad, ref.weight.grad, **TOL)
+    assert_same_grads(out, y, x, dense, conv, ref)
 
 
 @pytest.mark.parametrize("c_in, c_out", [(2, 5), (5, 2)])
@@ -306,11 +309,7 @@ def test_sites_at_the_grid_edges(kernel, stride, padding, c_in, c_out):
         else:
             full = out.dense() + conv.bias.view(1, -1, 1, 1, 1) * (out.dense() == 0).all(1, keepdim=True)
         torch.testing.assert_close(full, y, **TOL)
-        r = torch.randn(y.shape, dtype=torch.float64)
-        (full * r).sum().backward()
-        (y * r).sum().backward()
-        torch.testing.assert_close(x.features.grad, at(dense.grad, x.coords), **TOL)
-        torch.testing.assert_close(conv.weight.grad, ref.weight.grad, **TOL)
+        assert_same_grads(full, y, x, dense, conv, ref)
 
 
 def test_batch_with_an_empty_sample_in_the_middle():
