@@ -12,6 +12,12 @@ asked to find objects with no pixels (:func:`clfbev.train.recipe`).
 A pasted box must not overlap (BEV IoU > 0) any box already in the sample or pasted before it;
 the sample's own points inside a pasted box are removed, so each pasted box holds exactly the
 points it was cut with.
+
+Objects are drawn either uniformly (every object of the database as likely as any other, so the
+pasted classes follow the data: half of them cars on the urban preset) or class-balanced (every
+class as likely as any other, then an object of it uniformly), the class-balanced sampling of
+Zhu et al. 2019 (CBGS), whose per-class paste groups mmdet3d's nuScenes configs also use: the
+rare classes (bus, barrier, truck) are seen as often as the car.
 """
 from __future__ import annotations
 
@@ -60,11 +66,22 @@ class GTDatabase:
         return len(self.labels)
 
 
-def gt_paste(sample: Sample, db: GTDatabase, n: int, rng: np.random.Generator) -> Sample:
-    """Paste up to ``n`` database objects (drawn uniformly with ``rng``) into ``sample``."""
+def draw_objects(db: GTDatabase, k: int, rng: np.random.Generator, balanced: bool) -> np.ndarray:
+    """(min(k, len(db)),) distinct database indices in draw order: uniform over the objects, or
+    with ``balanced`` uniform over the classes and then over the objects of the class."""
+    if not balanced:
+        return rng.permutation(len(db))[:k]
+    _, inverse, counts = np.unique(db.labels, return_inverse=True, return_counts=True)
+    p = 1.0 / (len(counts) * counts[inverse])
+    return rng.choice(len(db), size=min(k, len(db)), replace=False, p=p / p.sum())
+
+
+def gt_paste(sample: Sample, db: GTDatabase, n: int, rng: np.random.Generator, balanced: bool = False) -> Sample:
+    """Paste up to ``n`` database objects (drawn with ``rng``, see :func:`draw_objects`) into
+    ``sample``."""
     if n <= 0 or len(db) == 0:
         return sample
-    order = rng.permutation(len(db))[: 4 * n]     # a few spares for those that collide
+    order = draw_objects(db, 4 * n, rng, balanced)     # a few spares for those that collide
     boxes = sample.gt_boxes.numpy()
     existing = torch.from_numpy(boxes[:, :7]).double()
     chosen = []

@@ -40,10 +40,15 @@ class VFE(nn.Module):
     Each point is augmented with its offset to the mean of its voxel's points and its offset to
     the voxel centre (VoxelNet / PointPillars), so the MLP sees where the point lies inside its
     voxel as well as where the voxel is. Every input is brought to order 1 first: the raw x, y,
-    z to [-1, 1] over ``pc_range`` and the two offsets in voxel units. In metres, a point at
-    40 m would feed the MLP a value 100 times the 0.4 m voxel's offsets, and the local geometry
-    (what tells a pole from a pedestrian) would be drowned by where the voxel is.
+    z to [-1, 1] over ``pc_range``, the two offsets in voxel units, and the time lag (column 4)
+    to [0, 1] over ``time_lag_span``. In metres, a point at 40 m would feed the MLP a value 100
+    times the 0.4 m voxel's offsets, and the local geometry (what tells a pole from a
+    pedestrian) would be drowned by where the voxel is. In seconds, the lag of 3 sweeps at 20 Hz
+    is at most 0.1, a tenth of every other input: the only per-point cue to which sweep a point
+    comes from, hence to motion (velocity, and the heading of a moving object), starts a tenth
+    as strong as the rest and stays weak through a short training.
 
+        lag_norm = p[4] / time_lag_span   (when C >= 5; the other extra columns as they are)
         aug = [xyz_norm (3), p[3:] (C - 3), (xyz - mean) / voxel (3), (xyz - centre) / voxel (3)]
         h = ReLU(Norm(Linear(aug)))                                       (out_ch,)
         voxel feature = max over the voxel's points of h
@@ -56,6 +61,7 @@ class VFE(nn.Module):
     pc_range : (xmin, ymin, zmin, xmax, ymax, zmax) metres, lidar frame.
     norm : "batch" (BatchNorm1d over the points of the batch) or "layer" (LayerNorm per
         point, batch independent).
+    time_lag_span : seconds, the lag of the oldest sweep (1.0 leaves column 4 as it is).
     """
 
     def __init__(
@@ -65,12 +71,20 @@ class VFE(nn.Module):
         voxel_size: tuple[float, float, float],
         pc_range: tuple[float, ...],
         norm: str = "batch",
+        time_lag_span: float = 1.0,
     ) -> None:
         super().__init__()
         if in_ch < 3:
             raise ValueError(f"VFE needs points with x, y, z (in_ch >= 3), got in_ch={in_ch}")
+        if not time_lag_span > 0:
+            raise ValueError(f"time_lag_span must be > 0 s, got {time_lag_span}")
         self.in_ch, self.out_ch = in_ch, out_ch
         self.aug_ch = in_ch + 6
+        # Scale of the extra columns p[3:]: the time lag (column 4) over its span, the rest as is.
+        extra_scale = torch.ones(max(in_ch - 3, 0), dtype=torch.float32)
+        if in_ch >= 5:
+            extra_scale[1] = 1.0 / time_lag_span
+        self.register_buffer("extra_scale", extra_scale, persistent=False)
         lo, hi = torch.tensor(pc_range[:3], dtype=torch.float32), torch.tensor(pc_range[3:], dtype=torch.float32)
         self.register_buffer("voxel_size", torch.tensor(voxel_size, dtype=torch.float32), persistent=False)
         self.register_buffer("origin", lo, persistent=False)
@@ -107,7 +121,8 @@ class VFE(nn.Module):
         vs, lo = self.voxel_size.to(points.dtype), self.origin.to(points.dtype)
         centre = (coords[:, [3, 2, 1]].to(points.dtype) + 0.5) * vs + lo  # (V, 3) x, y, z
         xyz_norm = (xyz - self.range_centre.to(points.dtype)) / self.range_half.to(points.dtype)
-        return torch.cat([xyz_norm, points[:, 3:], (xyz - mean[voxel_id]) / vs, (xyz - centre[voxel_id]) / vs], dim=1)
+        extra = points[:, 3:] * self.extra_scale.to(points.dtype)
+        return torch.cat([xyz_norm, extra, (xyz - mean[voxel_id]) / vs, (xyz - centre[voxel_id]) / vs], dim=1)
 
     def forward(self, points: Tensor, voxel_id: Tensor, num_points: Tensor, coords: Tensor) -> Tensor:
         """(M, C) points (lidar frame) grouped by voxel, as :func:`clfbev.ops.voxelize.voxelize`
@@ -256,7 +271,7 @@ class LidarEncoder(nn.Module):
     voxel_size : (dx, dy, dz) metres.
     max_voxels : the dynamic voxelization's cap per sample (a memory bound).
     blocks_per_stage, z_out_conv, xy_stride : see ``SparseEncoder``.
-    vfe_norm : see ``VFE``.
+    vfe_norm, time_lag_span : see ``VFE``.
     """
 
     def __init__(
@@ -271,13 +286,14 @@ class LidarEncoder(nn.Module):
         z_out_conv: bool = True,
         vfe_norm: str = "batch",
         xy_stride: int | None = None,
+        time_lag_span: float = 1.0,
     ) -> None:
         super().__init__()
         self.point_ch = point_ch
         self.pc_range, self.voxel_size = tuple(pc_range), tuple(voxel_size)
         self.max_voxels = max_voxels
         self.grid_shape = grid_shape_of(self.pc_range, self.voxel_size)  # (nz, ny, nx)
-        self.vfe = VFE(point_ch, vfe_ch, self.voxel_size, self.pc_range, norm=vfe_norm)
+        self.vfe = VFE(point_ch, vfe_ch, self.voxel_size, self.pc_range, norm=vfe_norm, time_lag_span=time_lag_span)
         self.sparse = SparseEncoder(vfe_ch, channels, self.grid_shape, blocks_per_stage, z_out_conv, xy_stride)
 
     @property

@@ -113,7 +113,8 @@ def detection_loss(
     -------
     dict of 0-d tensors: ``loss`` (eq. 9, differentiable), ``loss_cls``, ``loss_reg``,
     ``loss_reg_theta``, ``loss_dir`` (each already divided by the number of positives, before
-    its l weight) and ``num_pos`` (float, unclamped).
+    its l weight), ``loss_vel`` (the velocity residuals' share of ``loss_reg``, for the log)
+    and ``num_pos`` (float, unclamped).
     """
     flat = preds.flatten() if isinstance(preds, HeadOutput) else preds
     if flat.cls_logits.shape != targets.labels.shape:
@@ -149,6 +150,7 @@ def detection_loss(
     per_code = smooth_l1(diff, weights.smooth_l1_beta) * box_weights * code_w
     loss_reg_theta = per_code[:, 6].sum() / norm
     loss_reg = (per_code.sum() - per_code[:, 6].sum()) / norm
+    loss_vel = per_code[:, 7:].sum() / norm
 
     # Direction (eq. 8): only positives have a heading to classify.
     n_bins = flat.dir_logits.shape[-1]
@@ -162,5 +164,6 @@ def detection_loss(
         "loss_reg": loss_reg,
         "loss_reg_theta": loss_reg_theta,
         "loss_dir": loss_dir,
+        "loss_vel": loss_vel.detach(),
         "num_pos": num_pos.detach(),
     }

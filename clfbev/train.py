@@ -51,7 +51,7 @@ from clfbev.gt_paste import GTDatabase, gt_paste
 from clfbev.model import CLFusionBEV
 
 VERSION = "v1.0-sim"
-LOSS_KEYS = ("loss", "loss_cls", "loss_reg", "loss_dir", "loss_depth")
+LOSS_KEYS = ("loss", "loss_cls", "loss_reg", "loss_vel", "loss_dir", "loss_depth")
 
 
 class TrainError(RuntimeError):
@@ -69,7 +69,8 @@ class TrainConfig:
     sample loses one modality (camera or lidar, even odds): zero images or no points, the input
     a failed sensor gives at test time. gt_paste : objects pasted per sample from a database cut
     from the training split (lidar only, see clfbev/gt_paste.py; 0 = off); gt_paste_fade : share
-    of the last steps trained without pasting, on the real distribution. workers : DataLoader
+    of the last steps trained without pasting, on the real distribution; gt_paste_balanced :
+    draw the pasted objects class-balanced instead of uniformly. workers : DataLoader
     processes.
     ckpt_minutes : also write ``last.pt`` this often (besides every epoch). save_every_steps :
     also write it every N steps (0: off). val_split : split validated every epoch ('' : none).
@@ -96,6 +97,7 @@ class TrainConfig:
     modality_dropout: float = 0.0
     gt_paste: int = 0
     gt_paste_fade: float = 0.0
+    gt_paste_balanced: bool = False
     workers: int = 0
     ckpt_minutes: float = 10.0
     save_every_steps: int = 0
@@ -140,9 +142,11 @@ class EpochSamples(torch.utils.data.Dataset):
     (rng ``(seed, epoch, i, 1)``)."""
 
     def __init__(self, base: NuScenesDetection, seed: int, epoch: int, augment: AugmentConfig | None,
-                 pc_range: tuple[float, ...], modality_dropout: float = 0.0, gt_db=None, gt_paste: int = 0) -> None:
+                 pc_range: tuple[float, ...], modality_dropout: float = 0.0, gt_db=None, gt_paste: int = 0,
+                 gt_paste_balanced: bool = False) -> None:
         self.base, self.seed, self.epoch, self.augment, self.pc_range = base, seed, epoch, augment, pc_range
         self.modality_dropout, self.gt_db, self.gt_paste = modality_dropout, gt_db, gt_paste
+        self.gt_paste_balanced = gt_paste_balanced
 
     def __len__(self) -> int:
         return len(self.base)
@@ -150,7 +154,8 @@ class EpochSamples(torch.utils.data.Dataset):
     def __getitem__(self, i: int) -> Sample:
         sample = self.base[i]
         if self.gt_paste and self.gt_db is not None:     # before the global transform, as SECOND does
-            sample = gt_paste(sample, self.gt_db, self.gt_paste, np.random.default_rng((self.seed, self.epoch, i, 2)))
+            sample = gt_paste(sample, self.gt_db, self.gt_paste, np.random.default_rng((self.seed, self.epoch, i, 2)),
+                              self.gt_paste_balanced)
         if self.augment is not None:
             sample = random_augment(sample, np.random.default_rng((self.seed, self.epoch, i)), self.augment)
             sample = crop_to_range(sample, self.pc_range)
@@ -367,7 +372,7 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
             # that a run resumed mid-epoch pastes exactly as the uninterrupted one.
             paste = tc.gt_paste if epoch * steps_per_epoch < paste_until else 0
             epoch_set = EpochSamples(train_set, tc.seed, epoch, augment, cfg.pc_range, tc.modality_dropout,
-                                     gt_db, paste)
+                                     gt_db, paste, tc.gt_paste_balanced)
             loader = torch.utils.data.DataLoader(epoch_set, batch_sampler=batches[done_in_epoch:],
                                                  collate_fn=collate, num_workers=tc.workers)
             for batch in loader:
@@ -484,6 +489,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"paste up to N objects per sample from other training samples (lidar only; 0 = off) {rec}")
     p.add_argument("--gt-paste-fade", type=float, default=None, metavar="F",
                    help=f"train the last share F of the steps without pasting {rec}")
+    p.add_argument("--gt-paste-balanced", action=argparse.BooleanOptionalAction, default=None,
+                   help=f"draw the pasted objects class-balanced (every class as often) instead of uniformly {rec}")
     p.add_argument("--no-depth-loss", action="store_true",
                    help="no lidar supervision of the camera's depth (the ablation; sets loss.depth = 0)")
     p.add_argument("--workers", type=int, default=d.workers, help="DataLoader worker processes")
@@ -496,7 +503,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 # The options whose default is the recipe's value (argparse dest = TrainConfig field).
 _RECIPE_OPTIONS = ("epochs", "batch_size", "lr", "weight_decay", "warmup_frac", "grad_clip", "augment",
-                   "modality_dropout", "gt_paste", "gt_paste_fade")
+                   "modality_dropout", "gt_paste", "gt_paste_fade", "gt_paste_balanced")
 
 
 def train_config_from(args: argparse.Namespace) -> TrainConfig:

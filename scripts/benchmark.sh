@@ -4,6 +4,7 @@
 # the run folders.
 #   bash scripts/benchmark.sh                  # all five variants; lidar and full with 2 seeds
 #   bash scripts/benchmark.sh lidar full       # only these variants (all their seeds)
+#   bash scripts/benchmark.sh full_s1          # or only these runs (VARIANT_sSEED)
 #   bash scripts/benchmark.sh --list [VARIANT...]   # the runs and their state; runs nothing
 #   SCENES=3 SAMPLES=3 STEPS=4 RES=352x198 OUT=benchmark_out/smoke RESULTS=benchmark_out/smoke/results.md \
 #     bash scripts/benchmark.sh lidar full     # a smoke test of the whole chain
@@ -41,14 +42,14 @@ LIST=0
 if [ "${1:-}" = "--list" ]; then LIST=1; shift; fi
 # Names are checked before anything is installed or created, so a typo costs nothing.
 for v in "$@"; do
-  case " ${VARIANTS[*]} " in
+  case " ${VARIANTS[*]} ${ALL_RUNS[*]} " in
     *" $v "*) ;;
-    *) echo "benchmark: unknown variant '$v' (allowed: ${VARIANTS[*]})" >&2; exit 2 ;;
+    *) echo "benchmark: unknown variant or run '$v' (allowed: ${VARIANTS[*]}, or a run: ${ALL_RUNS[*]})" >&2; exit 2 ;;
   esac
 done
 RUNS=()
 for run in "${ALL_RUNS[@]}"; do
-  if [ $# -eq 0 ] || [[ " $* " == *" ${run%_s*} "* ]]; then RUNS+=("$run"); fi
+  if [ $# -eq 0 ] || [[ " $* " == *" ${run%_s*} "* ]] || [[ " $* " == *" $run "* ]]; then RUNS+=("$run"); fi
 done
 
 state_of() {  # run folder -> done | started | pending (from the files alone: no python yet)

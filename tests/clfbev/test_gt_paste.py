@@ -7,7 +7,7 @@ import torch
 
 from clfbev.config import tiny
 from clfbev.data import NuScenesDetection
-from clfbev.gt_paste import GTDatabase, gt_paste, points_in_box
+from clfbev.gt_paste import GTDatabase, draw_objects, gt_paste, points_in_box
 from clfbev.ops.boxes import bev_iou
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -40,3 +40,20 @@ def test_paste_adds_objects_with_their_points(tiny_dataset):
         assert sorted(map(tuple, inside)) == sorted(map(tuple, db.points[k]))
     again = gt_paste(s, db, 8, np.random.default_rng(0))
     torch.testing.assert_close(again.points, out.points)
+
+
+def test_balanced_draw_gives_every_class_the_same_share():
+    """900 objects of class 0, 100 of class 1, 10 of class 2: a uniform draw follows the counts,
+    a class-balanced one gives each class a third; draws are distinct indices either way."""
+    labels = np.repeat([0, 1, 2], [900, 100, 10])
+    db = GTDatabase(np.zeros((len(labels), 9), np.float32), labels, [np.zeros((5, 5), np.float32)] * len(labels))
+    firsts = {True: [], False: []}
+    for seed in range(3000):
+        for balanced in (True, False):
+            order = draw_objects(db, 8, np.random.default_rng(seed), balanced)
+            assert len(set(order.tolist())) == 8
+            firsts[balanced].append(labels[order[0]])
+    share = {b: np.bincount(firsts[b], minlength=3) / 3000 for b in firsts}
+    np.testing.assert_allclose(share[True], [1 / 3] * 3, atol=0.03)
+    np.testing.assert_allclose(share[False], [900 / 1010, 100 / 1010, 10 / 1010], atol=0.02)
+    assert len(draw_objects(db, 5000, np.random.default_rng(0), True)) == len(db)   # all, when asked for more

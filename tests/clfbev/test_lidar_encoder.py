@@ -88,8 +88,8 @@ def test_vfe_invariant_to_point_order(norm):
 
 @pytest.mark.parametrize("norm", ["batch", "layer"])
 def test_vfe_single_point_voxel_is_that_points_mlp_output(norm):
-    """Eval mode, by hand: aug = [xyz scaled to [-1, 1] over the range, intensity, lag, 0
-    (offset to the mean), (xyz - centre) / voxel] -> Linear, norm, ReLU."""
+    """Eval mode, by hand: aug = [xyz scaled to [-1, 1] over the range, intensity, lag over its
+    span, 0 (offset to the mean), (xyz - centre) / voxel] -> Linear, norm, ReLU."""
     pc_range, voxel = (-2.0, -3.0, -1.0, 2.0, 3.0, 1.0), (0.5, 0.75, 0.5)
     p = torch.tensor([[0.3, -1.1, 0.2, 0.7, 0.25], [-1.9, 2.9, -0.9, 0.1, 0.0]], dtype=torch.float64)
     vox = voxelize(p, torch.zeros(2, dtype=torch.long), pc_range, voxel, 10)
@@ -99,13 +99,14 @@ def test_vfe_single_point_voxel_is_that_points_mlp_output(norm):
     centre = torch.tensor([-2.0 + 4.5 * 0.5, -3.0 + 2.5 * 0.75, -1.0 + 2.5 * 0.5], dtype=torch.float64)
 
     torch.manual_seed(0)
-    vfe = VFE(5, 24, voxel, pc_range, norm=norm).double().eval()
+    vfe = VFE(5, 24, voxel, pc_range, norm=norm, time_lag_span=0.1).double().eval()
     randomise_bn(vfe)
     out = run_vfe(vfe, p, vox)
 
     xyz_norm = p[0, :3] / torch.tensor([2.0, 3.0, 1.0], dtype=torch.float64)  # the range is centred on 0
     offset = (p[0, :3] - centre) / torch.tensor(voxel, dtype=torch.float64)
-    aug = torch.cat([xyz_norm, p[0, 3:], torch.zeros(3, dtype=torch.float64), offset])
+    lag_norm = p[0, 4:5] / 0.1
+    aug = torch.cat([xyz_norm, p[0, 3:4], lag_norm, torch.zeros(3, dtype=torch.float64), offset])
     h = vfe.point_mlp[0].weight @ aug
     nrm = vfe.point_mlp[1]
     if norm == "batch":

@@ -229,4 +229,6 @@ def test_the_runs_their_order_and_the_variants_clfbev_knows(tmp_path):
     assert bench_sh(tmp_path, "--list").stdout == every.stdout                  # the default: all five
     some = bench_sh(tmp_path, "--list", "full", "lidar").stdout.split()[::2]
     assert some == ["lidar_s0", "full_s0", "lidar_s1", "full_s1"]               # the default order kept
+    runs = bench_sh(tmp_path, "--list", "full_s1", "camera").stdout.split()[::2]
+    assert runs == ["camera_s0", "full_s1"]                                     # runs by name, too
     assert sorted(p.name for p in (tmp_path / "repo").iterdir()) == ["scripts"]
