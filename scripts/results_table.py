@@ -27,6 +27,9 @@ DETECTION_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "
                      "bicycle", "traffic_cone", "barrier")
 # Train-config fields that do not change the result (how often to save, loader processes).
 BOOKKEEPING = ("ckpt_minutes", "save_every_steps", "workers")
+# Train-config fields the recipe sets per variant (clfbev.train.recipe: the camera variant pastes
+# nothing, as the pasted objects have no pixels): they must agree within a variant, not across.
+PER_VARIANT = ("gt_paste",)
 
 
 # ---------------------------------------------------------------- reading
@@ -123,6 +126,16 @@ def recipe_of(info: dict) -> dict:
     return {"config_name": config_name(info.get("argv", [])), "config": info["config"], "train": train}
 
 
+def values_by_variant(started: list[dict], key: str) -> dict:
+    """{value of train field ``key``: [variants with it]}, in table order."""
+    values: dict = {}
+    for r in started:
+        v = r["info"]["train"].get(key)
+        if r["variant"] not in values.setdefault(v, []):
+            values[v].append(r["variant"])
+    return values
+
+
 def describe_train(train: dict) -> str:
     return ", ".join(f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in train.items())
 
@@ -163,15 +176,23 @@ def render(out: Path, run_names: list[str], now: float | None = None) -> str:
         tr = first["train"]
         samples = steps * tr["batch_size"] * (started[0]["info"].get("world_size") or 1)
         epochs = f", {samples / sizes['sim-train'][1]:.1f} epochs of `sim-train`" if sizes and sizes.get("sim-train") else ""
+        shown = {k: v for k, v in tr.items() if k not in PER_VARIANT}
+        per_variant = "; ".join(
+            f"`{k}` " + ", ".join(f"{v} ({', '.join(vs)})" for v, vs in values_by_variant(started, k).items())
+            for k in PER_VARIANT if k in tr)
         lines.append(f"- Recipe: the defaults of `clfbev train --config {first['config_name']}` (model config "
-                     f"`{first['config_name']}`), the same for every run but the seed. From `run.json`: "
-                     f"`{describe_train(tr)}`.")
+                     f"`{first['config_name']}`), the same for every run of a variant but the seed. From `run.json`: "
+                     f"`{describe_train(shown)}`; per variant: {per_variant or 'nothing'}.")
         lines.append(f"- Step budget: {steps} optimizer steps per run ({samples} samples{epochs}). No validation while "
                      "training (`--val-split ''`), so nothing is selected on `sim-val`: the evaluated checkpoint is "
                      "`last.pt`, the weights after the last step.")
         differ = []
+        variant_of = {r["name"]: r["variant"] for r in started}
         for name, rec in recipes.items():
-            keys = [k for k in {**first["train"], **rec["train"]} if rec["train"].get(k) != first["train"].get(k)]
+            # Against the first run of its variant for the per-variant fields, the first run for the rest.
+            twin = recipes[next(n for n in recipes if variant_of[n] == variant_of[name])]
+            keys = [k for k in {**first["train"], **rec["train"]}
+                    if rec["train"].get(k) != (twin if k in PER_VARIANT else first)["train"].get(k)]
             keys += ["model config"] if rec["config"] != first["config"] or rec["config_name"] != first["config_name"] else []
             if keys:
                 differ.append(f"`{name}` ({', '.join(keys)})")

@@ -128,7 +128,8 @@ def test_table_has_the_devkit_numbers_wall_time_and_setup(bench):
     setup = section(md, "Setup")
     assert "3 scenes x 3 key frames at 352x198, seed 1" in setup
     assert "`sim-train` 2 scenes (6 samples), `sim-val` 1 scene (3 samples)" in setup
-    assert "--config tiny" in setup and "lr=0.001" in setup and "gt_paste=8" in setup and "seed=" not in setup
+    assert "--config tiny" in setup and "lr=0.001" in setup and "per variant: `gt_paste` 8 (lidar)" in setup
+    assert "seed=" not in setup
     assert "10 optimizer steps per run (20 samples, 3.3 epochs" in setup
     assert "`abc1234`" in setup and "2 CPU cores" in setup
     assert "1 of 7 runs done" in md
@@ -168,10 +169,16 @@ def test_a_run_with_another_recipe_is_flagged(bench):
     # Bookkeeping, and the epoch count that --max-steps overrides, do not change a result.
     add_run(bench, "concat_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"ckpt_minutes": 3.0, "epochs": 12})
     add_run(bench, "mcm_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"gt_paste_fade": 0.2})
+    # The recipe pastes nothing for the camera variant: that is one recipe, per variant. But the
+    # second seed of a variant must paste as its first.
+    add_run(bench, "camera_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"gt_paste": 0})
+    add_run(bench, "lidar_s1", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"gt_paste": 0, "seed": 1})
     setup = section(render(bench), "Setup")
     flagged = setup.split("**Not one recipe:**")[1].split("\n")[0]
     assert "`full_s0` (lr)" in flagged and "`mcm_s0` (gt_paste_fade)" in flagged   # a field only one run has
     assert "concat_s0" not in flagged and "lidar_s0`:" in flagged
+    assert "camera_s0" not in flagged and "`lidar_s1` (gt_paste)" in flagged
+    assert "per variant: `gt_paste` 8 (lidar, full, concat, mcm), 0 (camera, lidar)" in setup
     assert "`full_s0` `def5678`" in setup
 
 
