@@ -330,8 +330,18 @@ def _look_along(direction: np.ndarray) -> np.ndarray:
 
 
 def depth_to_range(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(H, W) camera-frame z -> (H, W) range along each pixel's ray (m); 0 stays 0."""
-    H, W = depth.shape
+    """(H, W) camera-frame z -> (H, W) float32 range along each pixel's ray (m); 0 stays 0."""
+    return depth.astype(np.float32, copy=False) * _ray_length_per_depth(depth.shape, np.asarray(K, np.float64).tobytes())
+
+
+@functools.lru_cache(maxsize=16)
+def _ray_length_per_depth(shape: tuple[int, int], K_bytes: bytes) -> np.ndarray:
+    """(H, W) float32 |ray| / z of each pixel centre: a camera's constant, so computed once (in
+    float64) instead of for every frame (a third of the camera fog's time at 1600x900)."""
+    K = np.frombuffer(K_bytes, np.float64).reshape(3, 3)
+    H, W = shape
     u = (np.arange(W) + 0.5 - K[0, 2]) / K[0, 0]
     v = (np.arange(H) + 0.5 - K[1, 2]) / K[1, 1]
-    return depth * np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2)
+    scale = np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2).astype(np.float32)
+    scale.flags.writeable = False
+    return scale

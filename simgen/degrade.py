@@ -113,7 +113,7 @@ def fog_image(rgb: np.ndarray, range_m: np.ndarray, alpha: float, airlight=AIRLI
     """Koschmieder fog. rgb (H, W, 3) uint8, range_m (H, W) metres along each pixel's ray, 0 where
     nothing was hit (sky: full airlight). Returns uint8 ``round(J t + A (1 - t))``."""
     # float32 with OpenCV's vectorised arithmetic: about 5x faster than float64 numpy at 1600x900.
-    t = np.exp(np.float32(-alpha) * range_m.astype(np.float32))
+    t = np.exp(np.float32(-alpha) * range_m.astype(np.float32, copy=False))
     t[range_m <= 0] = 0.0
     A = tuple(float(a) for a in airlight) + (0.0,)
     x = cv2.subtract(rgb.astype(np.float32), A)
