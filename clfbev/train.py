@@ -326,7 +326,7 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
     steps_per_epoch = len(epoch_batches(len(train_set), tc.batch_size, tc.seed, 0, rank, world))
     total = tc.max_steps if tc.max_steps > 0 else tc.epochs * steps_per_epoch
     augment = AugmentConfig() if tc.augment else None
-    gt_db = GTDatabase.build(train_set[i] for i in range(len(train_set))) if tc.gt_paste else None
+    gt_db = GTDatabase.from_dataset(train_set) if tc.gt_paste else None
     paste_until = int(round(total * (1.0 - tc.gt_paste_fade)))
 
     # ---- model and optimizer
