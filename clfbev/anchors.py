@@ -89,7 +89,7 @@ def _check_classes(class_names: Sequence[str]) -> None:
 
 def match_thresholds(class_names: Sequence[str]) -> list[tuple[float, float]]:
     """``(pos, neg)`` IoU thresholds in the order of ``class_names`` (the order of the anchor
-    class axis), as :func:`clfbev.head.assign_targets` expects them."""
+    class axis), as :func:`clfbev.assign.assign_targets` expects them."""
     _check_classes(class_names)
     return [MATCH_THRESHOLDS[name] for name in class_names]
 

@@ -14,7 +14,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from clfbev.head import FlatPredictions, HeadOutput, Targets
+from clfbev.assign import Targets
+from clfbev.head import FlatPredictions, HeadOutput
 
 
 @dataclass(frozen=True)
@@ -106,7 +107,7 @@ def detection_loss(
     Parameters
     ----------
     preds : head output for B samples, (B, N, ...) once flattened.
-    targets : batched targets (:func:`clfbev.head.stack_targets`), (B, N, ...).
+    targets : batched targets (:func:`clfbev.assign.stack_targets`), (B, N, ...).
     weights : loss weights.
 
     Returns

@@ -35,7 +35,8 @@ from clfbev.config import VARIANTS, ModelConfig
 from clfbev.data import Batch
 from clfbev.depth import depth_loss, depth_targets
 from clfbev.fusion import BSM, MCM, ConvFuser
-from clfbev.head import AnchorHead, Detections, HeadOutput, assign_targets, decode, stack_targets
+from clfbev.assign import assign_targets, stack_targets
+from clfbev.head import AnchorHead, Detections, HeadOutput, decode
 from clfbev.lidar_encoder import LidarEncoder
 from clfbev.losses import detection_loss
 

@@ -1,4 +1,4 @@
-"""Tests for clfbev.anchors, clfbev.head and clfbev.losses: exact anchor grids, SECOND-style
+"""Tests for clfbev.anchors, clfbev.head, clfbev.assign and clfbev.losses: exact anchor grids, SECOND-style
 class-aware assignment on hand-computed IoUs, hand-computed losses, decode(encode) round trips."""
 
 from __future__ import annotations
@@ -10,16 +10,8 @@ import pytest
 import torch
 
 from clfbev.anchors import ANCHOR_SIZES, CLASS_NAMES, MATCH_THRESHOLDS, anchor_class_ids, make_anchors, match_thresholds
-from clfbev.head import (
-    AnchorHead,
-    FlatPredictions,
-    HeadOutput,
-    Targets,
-    assign_targets,
-    decode,
-    direction_target,
-    stack_targets,
-)
+from clfbev.assign import Targets, assign_targets, stack_targets
+from clfbev.head import AnchorHead, FlatPredictions, HeadOutput, decode, direction_target
 from clfbev.losses import LossWeights, detection_loss, direction_cross_entropy, sigmoid_focal_loss, sin_difference, smooth_l1
 from clfbev.ops.boxes import bev_iou, encode_boxes
 
