@@ -15,9 +15,9 @@ points it was cut with.
 
 Objects are drawn either uniformly (every object of the database as likely as any other, so the
 pasted classes follow the data: half of them cars on the urban preset) or class-balanced (every
-class as likely as any other, then an object of it uniformly), the class-balanced sampling of
-Zhu et al. 2019 (CBGS), whose per-class paste groups mmdet3d's nuScenes configs also use: the
-rare classes (bus, barrier, truck) are seen as often as the car.
+class as likely as any other, then an object of it uniformly), after the class-balanced
+sampling of Zhu et al. 2019 (CBGS; mmdet3d's nuScenes GT sampler likewise fixes a count per
+class): the rare classes (bus, barrier, truck) are pasted as often as the car.
 """
 from __future__ import annotations
 
