@@ -570,6 +570,8 @@ def test_loss_perfect_and_off_by_pi():
     w = LossWeights()
     v = detection_loss(FlatPredictions(cls, vel, wrong_dir), batch, w)
     assert_close(v["loss_reg"], torch.tensor(0.2 * (1 - (1 / 9) / 2)), atol=1e-5)
+    assert_close(v["loss_vel"], v["loss_reg"], atol=1e-7)          # all of it is velocity here
+    assert float(q["loss_vel"]) < 1e-6 and float(perfect["loss_vel"]) < 1e-6
     total = w.cls * v["loss_cls"] + w.reg * (v["loss_reg"] + v["loss_reg_theta"]) + w.dir * v["loss_dir"]
     assert_close(v["loss"], total, atol=1e-6)
 
