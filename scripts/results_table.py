@@ -77,6 +77,7 @@ def load_run(out: Path, name: str) -> dict:
         "eval_s": evals[-1]["seconds"] if evals else None,
         "step": max((p["to_step"] for p in train), default=0),
         "threads": sorted({p["threads"] for p in parts if "threads" in p}),
+        "cores": sorted({p["cores"] for p in parts if "cores" in p}),
         "ends": sorted(p["end"] for p in parts if "end" in p),
     }
 
@@ -206,8 +207,15 @@ def render(out: Path, run_names: list[str], now: float | None = None) -> str:
                  "with ground truth (with lidar points) in the split. The attribute is derived from the predicted "
                  "speed, not learned, so mAAE follows from the velocity.")
     threads = sorted({t for r in runs for t in r["threads"]})
+    cores = sorted({c for r in runs for c in r["cores"]})
     total = sum((r["train_s"] or 0) + (r["eval_s"] or 0) for r in runs)
-    lines.append(f"- Machine: {', '.join(map(str, threads)) or '?'} CPU cores (`nproc`), all used as torch threads. "
+    if cores:   # benchmark.sh records the cores (nproc) and the torch threads (THREADS) of every part
+        per_run = "; ".join(f"`{r['name']}` {', '.join(map(str, r['threads']))}" for r in runs if r["threads"])
+        machine = (f"{', '.join(map(str, cores))} CPU cores (`nproc`); torch threads per run: "
+                   f"{per_run} (fewer than the cores when runs shared them). ")
+    else:       # parts written before the cores were recorded: THREADS was nproc then
+        machine = f"{', '.join(map(str, threads)) or '?'} CPU cores (`nproc`), all used as torch threads. "
+    lines.append(f"- Machine: {machine}"
                  "Wall time: training (every part of a resumed run, an interrupted part included, so steps "
                  "recomputed after a resume count twice; only a part killed together with the script is missing) "
                  f"and evaluation, in minutes; {total / 3600:.1f} h in all.")

@@ -131,7 +131,7 @@ def test_table_has_the_devkit_numbers_wall_time_and_setup(bench):
     assert "--config tiny" in setup and "lr=0.001" in setup and "per variant: `gt_paste` 8 (lidar)" in setup
     assert "seed=" not in setup
     assert "10 optimizer steps per run (20 samples, 3.3 epochs" in setup
-    assert "`abc1234`" in setup and "2 CPU cores" in setup
+    assert "`abc1234`" in setup and "2 CPU cores (`nproc`), all used" in setup       # parts without "cores"
     assert "1 of 7 runs done" in md
     reproduce = section(md, "Reproduce")
     assert "SCENES=3 SAMPLES=3 RES=352x198 STEPS=10" in reproduce and "--max-steps 10 --val-split ''" in reproduce
@@ -161,6 +161,17 @@ def test_seed_spread_is_mean_half_range_and_range(bench):
     assert row(spread, "lidar") == ["0, 1", "0.1200 ± 0.0200", "0.2150 ± 0.0150", "0.0400", "0.0300"]
     assert row(spread, "full")[:2] == ["0, 1", "pending (1 of 2 seeds done)"]
     assert "concat" not in spread                                                # one seed: no spread
+
+
+def test_the_cores_and_each_runs_threads(bench):
+    add_run(bench, "lidar_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)))
+    add_run(bench, "full_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)))
+    for name, threads in (("lidar_s0", 1), ("full_s0", 2)):
+        (bench / name / "wall.jsonl").write_text(json.dumps(
+            {"stage": "train", "from_step": 0, "to_step": 10, "seconds": 60, "exit": 0, "threads": threads,
+             "cores": 2, "end": "2026-12-01T10:00:00Z"}) + "\n")
+    setup = section(render(bench), "Setup")
+    assert "2 CPU cores (`nproc`); torch threads per run: `lidar_s0` 1; `full_s0` 2" in setup
 
 
 def test_a_run_with_another_recipe_is_flagged(bench):
