@@ -85,7 +85,7 @@ ckpt_step() {  # the optimizer step a last.pt was written at
   $PY -c 'import sys; from clfbev.checkpoint import load_checkpoint; print(load_checkpoint(sys.argv[1])["step"])' "$1"
 }
 record() {  # run folder, stage, extra JSON fields: one line per part in RUN/wall.jsonl
-  echo "{\"stage\": \"$2\", $3, \"threads\": $THREADS, \"end\": \"$(date -u +%Y-%m-%dT%H:%M:%SZ)\"}" >> "$1/wall.jsonl"
+  echo "{\"stage\": \"$2\", $3, \"threads\": $THREADS, \"cores\": $(nproc), \"end\": \"$(date -u +%Y-%m-%dT%H:%M:%SZ)\"}" >> "$1/wall.jsonl"
 }
 table() {
   $PY scripts/results_table.py "$OUT" --runs "${ALL_RUNS[@]}" --out "$RESULTS"
