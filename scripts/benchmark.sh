@@ -16,12 +16,11 @@ cd "$(dirname "$0")/.."
 
 # The knobs. The defaults are the benchmark: change them only for a smoke test, into another OUT.
 # STEPS is the one step budget shared by every variant, sized for the slowest one, full, on the
-# 2-core development machine. Measured with the tiny recipe (GT-paste on) at 704x396: 2.45 CPU
-# seconds per step of 2 samples on one thread (CPU time, which other load on the cores hardly
-# stretch). With both threads, at a speed-up of about 1.4, that is 1.75 s per step: 1200 steps
-# are 35 min, plus about 3 min to start (the GT-paste database reads the training split once)
-# and about 4 min to evaluate 160 samples, within 45 min. Other load on the cores stretches all
-# of this; the table reports the wall time each run took.
+# 2-core development machine. Measured with the tiny recipe (10 sweeps, GT-paste on) at 704x396:
+# 1.7-2.0 s per step of 2 samples with both threads and nothing else running (full_s0), so 1200
+# steps are 34-40 min, plus about 1 min to start (the GT-paste database reads the training
+# split's lidar once) and 2-4 min to evaluate 160 samples: about 45 min. Other load on the cores
+# stretches all of this; the table reports the wall time each run took.
 SCENES=${SCENES:-40}            # urban scenes; the last 20% are sim-val (40 -> 32 train, 8 val)
 SAMPLES=${SAMPLES:-20}          # key frames per scene
 RES=${RES:-704x396}             # camera resolution WxH
