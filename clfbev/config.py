@@ -231,9 +231,9 @@ def tiny() -> ModelConfig:
     left rings of BEV cells that no camera feature reached); 8 x 8 window attention (exact
     attention over 16,384 cells would be the slowest part by far). 10 lidar sweeps (0.45 s,
     as the nuScenes peers): with 3 (0.1 s) a car at 8 m/s moves 0.8 m between the oldest and
-    the newest sweep, one BEV cell, and the detector learned no velocity at all (mAVE 1.9 m/s,
-    every car predicted at about 0 m/s). One training step of 'full' costs about 1.5 CPU
-    seconds per sample (docs/benchmarks.md)."""
+    the newest sweep, one BEV cell (the benchmark's models predict no velocity with 3 sweeps or
+    with 10, docs/benchmarks.md). One training step of 'full' costs about 1.5 CPU seconds per
+    sample (docs/benchmarks.md)."""
     return ModelConfig(n_sweeps=10)
 
 
