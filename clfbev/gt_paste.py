@@ -48,20 +48,15 @@ class GTDatabase:
     points: list[np.ndarray]    # m arrays (k_i, C)
 
     @classmethod
-    def build(cls, samples, min_points: int = 5) -> "GTDatabase":
-        """From an iterable of :class:`Sample` (unaugmented); objects with fewer than
-        ``min_points`` points are skipped (nothing to learn from)."""
-        return cls.from_arrays(((s.points.numpy(), s.gt_boxes.numpy(), s.gt_labels.numpy()) for s in samples),
-                               min_points)
-
-    @classmethod
     def from_dataset(cls, dataset, min_points: int = 5) -> "GTDatabase":
         """From every sample of a :class:`clfbev.data.NuScenesDetection`, without its images."""
         return cls.from_arrays((dataset.lidar_and_boxes(i) for i in range(len(dataset))), min_points)
 
     @classmethod
     def from_arrays(cls, samples, min_points: int = 5) -> "GTDatabase":
-        """From an iterable of (points (n, C), gt_boxes (M, 9), gt_labels (M,)) arrays."""
+        """From an iterable of unaugmented (points (n, C), gt_boxes (M, 9), gt_labels (M,))
+        arrays; objects with fewer than ``min_points`` points are skipped (nothing to learn
+        from)."""
         boxes, labels, points = [], [], []
         for pts, gt, lab in samples:
             for box, label in zip(gt, lab):          # a loop over objects; each test is vectorised

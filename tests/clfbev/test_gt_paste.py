@@ -22,11 +22,12 @@ def test_points_in_box_rotated():
 def test_paste_adds_objects_with_their_points(tiny_dataset):
     train = NuScenesDetection(tiny_dataset, "v1.0-sim", "sim-train", tiny().data_config())
     val = NuScenesDetection(tiny_dataset, "v1.0-sim", "sim-val", tiny().data_config())
-    db = GTDatabase.build(train[i] for i in range(len(train)))
+    db = GTDatabase.from_dataset(train)                        # without the images
     assert len(db) > 10 and all(len(p) >= 5 for p in db.points)
-    fast = GTDatabase.from_dataset(train)                      # the same objects, without the images
-    assert np.array_equal(fast.boxes, db.boxes) and np.array_equal(fast.labels, db.labels)
-    assert all(np.array_equal(a, b) for a, b in zip(fast.points, db.points))
+    full = GTDatabase.from_arrays((s.points.numpy(), s.gt_boxes.numpy(), s.gt_labels.numpy())
+                                  for s in (train[i] for i in range(len(train))))
+    assert np.array_equal(full.boxes, db.boxes) and np.array_equal(full.labels, db.labels)  # as the full samples
+    assert all(np.array_equal(a, b) for a, b in zip(full.points, db.points))
     s = val[0]
     out = gt_paste(s, db, 8, np.random.default_rng(0))
     n0, n1 = len(s.gt_boxes), len(out.gt_boxes)
