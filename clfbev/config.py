@@ -47,7 +47,8 @@ class ModelConfig:
     every point of a kept voxel), ``vfe_ch`` (VFE MLP width, 512 in the paper),
     ``sparse_channels`` (one entry per sparse stage; each stage after the first halves z),
     ``lidar_bev_stride`` (the x/y stride of the lidar BEV over the voxels: the first
-    log2(stride) downsamplings also halve x and y), ``sparse_blocks``.
+    log2(stride) downsamplings also halve x and y), ``sparse_blocks``, ``sweep_bands`` (lag
+    bands whose point counts per BEV cell join the lidar BEV, :mod:`clfbev.sweep_bev`; 0: none).
     Camera: ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``, ``context_ch``, ``depth_bins``
     (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``.
     Fusion: ``fusion_dim`` (ConvFuser / MCM / BSM channels), ``attn_heads``, ``attn_mode``
@@ -70,6 +71,7 @@ class ModelConfig:
     sparse_channels: tuple[int, ...] = (8, 16, 32)
     lidar_bev_stride: int = 2
     sparse_blocks: int = 1
+    sweep_bands: int = 0
     # camera
     cam_depth: int = 18
     cam_width: int = 16
@@ -150,8 +152,8 @@ class ModelConfig:
 
     @property
     def lidar_bev_channels(self) -> int:
-        """Lidar BEV channels: last sparse stage channels x remaining z cells."""
-        return self._sparse_out[1]
+        """Lidar BEV channels: last sparse stage channels x remaining z cells, and the sweep bands."""
+        return self._sparse_out[1] + self.sweep_bands
 
     @property
     def cam_bev_voxel(self) -> tuple[float, float, float]:
@@ -232,9 +234,11 @@ def tiny() -> ModelConfig:
     attention over 16,384 cells would be the slowest part by far). 10 lidar sweeps (0.45 s,
     as the nuScenes peers): with 3 (0.1 s) a car at 8 m/s moves 0.8 m between the oldest and
     the newest sweep, one BEV cell (the benchmark's models predict no velocity with 3 sweeps or
-    with 10, docs/benchmarks.md). One training step of 'full' costs about 1.5 CPU seconds per
+    with 10, docs/benchmarks.md); the point counts of 5 lag bands of 0.1 s per BEV cell join the
+    lidar BEV, where the backbone can compare the old and the new sweeps' places
+    (:mod:`clfbev.sweep_bev`). One training step of 'full' costs about 1.5 CPU seconds per
     sample (docs/benchmarks.md)."""
-    return ModelConfig(n_sweeps=10)
+    return ModelConfig(n_sweeps=10, sweep_bands=5)
 
 
 def paper() -> ModelConfig:

@@ -99,9 +99,10 @@ class ConvFuser(nn.Module):
 class MCM(nn.Module):
     """Multimodal cross-attention: lidar BEV queries attend to the camera BEV.
 
-    ``x = W1 F_lidar`` (the residual stream; W1 starts as the identity when the channels
-    agree); ``q = LN(x) + PE``; ``k = Wk LN(F_cam)``, ``v = Wv LN(F_cam)`` (no positional
-    encoding on k/v, as in the paper); ``y = x + Wo attn(q, k, v)``; ``out = y + FFN(LN(y))``.
+    ``x = W1 F_lidar`` (the residual stream; W1 starts as the identity on the first ``dim``
+    channels when there are at least as many, and 0 on the rest: ``tiny``'s sweep bands follow
+    its 64 sparse channels); ``q = LN(x) + PE``; ``k = Wk LN(F_cam)``, ``v = Wv LN(F_cam)`` (no
+    positional encoding on k/v, as in the paper); ``y = x + Wo attn(q, k, v)``; ``out = y + FFN(LN(y))``.
     ``Wo`` and the FFN's last layer start at zero, so at initialisation ``out = x``.
 
     Parameters
@@ -131,7 +132,7 @@ class MCM(nn.Module):
             raise ValueError(f"MCM dim {dim} must be divisible by heads {heads} and by 4")
         self.dim = dim
         self.q_proj = nn.Linear(lidar_ch, dim)  # W1
-        if lidar_ch == dim:
+        if lidar_ch >= dim:
             nn.init.eye_(self.q_proj.weight)
             nn.init.zeros_(self.q_proj.bias)
         self.pos = _PosEncoding(dim)

@@ -21,6 +21,7 @@ from torch import Tensor, nn
 
 from clfbev.ops.sparse_conv import SparseConv3d, SparseTensor, SubMConv3d, subm_rulebook
 from clfbev.ops.voxelize import grid_shape_of, voxelize
+from clfbev.sweep_bev import sweep_occupancy
 
 Triple = tuple[int, int, int]
 
@@ -260,7 +261,9 @@ def _block(conv: nn.Module, norm: nn.Module, x: SparseTensor, rulebook=None) -> 
 
 
 class LidarEncoder(nn.Module):
-    """Points (lidar frame) -> lidar BEV: ``voxelize`` -> ``VFE`` -> ``SparseEncoder``.
+    """Points (lidar frame) -> lidar BEV: ``voxelize`` -> ``VFE`` -> ``SparseEncoder``, and with
+    ``sweep_bands`` the per-band point counts of :func:`clfbev.sweep_bev.sweep_occupancy` as
+    further channels.
 
     Parameters
     ----------
@@ -272,6 +275,7 @@ class LidarEncoder(nn.Module):
     max_voxels : the dynamic voxelization's cap per sample (a memory bound).
     blocks_per_stage, z_out_conv, xy_stride : see ``SparseEncoder``.
     vfe_norm, time_lag_span : see ``VFE``.
+    sweep_bands : lag bands counted per BEV cell (0: none).
     """
 
     def __init__(
@@ -287,9 +291,11 @@ class LidarEncoder(nn.Module):
         vfe_norm: str = "batch",
         xy_stride: int | None = None,
         time_lag_span: float = 1.0,
+        sweep_bands: int = 0,
     ) -> None:
         super().__init__()
         self.point_ch = point_ch
+        self.time_lag_span, self.sweep_bands = time_lag_span, sweep_bands
         self.pc_range, self.voxel_size = tuple(pc_range), tuple(voxel_size)
         self.max_voxels = max_voxels
         self.grid_shape = grid_shape_of(self.pc_range, self.voxel_size)  # (nz, ny, nx)
@@ -298,7 +304,7 @@ class LidarEncoder(nn.Module):
 
     @property
     def out_channels(self) -> int:
-        return self.sparse.out_channels
+        return self.sparse.out_channels + self.sweep_bands
 
     @property
     def out_size(self) -> tuple[int, int]:
@@ -342,10 +348,15 @@ class LidarEncoder(nn.Module):
         if points.ndim != 2 or points.shape[1] != self.point_ch:
             raise ValueError(f"points must be (N, {self.point_ch}), got {tuple(points.shape)}")
         vox = voxelize(points, batch_idx, self.pc_range, self.voxel_size, self.max_voxels)
+        ny, nx = self.out_size
         if vox.coords.shape[0] == 0:
             # No point in range anywhere in the batch: the BEV is empty (BatchNorm cannot run on
             # zero rows in training mode, so short-cut it).
-            ny, nx = self.out_size
             return points.new_zeros((batch_size, self.out_channels, ny, nx))
         feats = self.vfe(points[vox.point_index], vox.voxel_id, vox.num_points, vox.coords)  # (V, vfe_ch)
-        return self.sparse(SparseTensor(feats, vox.coords, vox.grid_shape, batch_size))
+        bev = self.sparse(SparseTensor(feats, vox.coords, vox.grid_shape, batch_size))
+        if not self.sweep_bands:
+            return bev
+        bands = sweep_occupancy(points, batch_idx, batch_size, self.pc_range, (ny, nx), self.sweep_bands,
+                                self.time_lag_span)
+        return torch.cat([bev, bands.to(bev.dtype)], dim=1)

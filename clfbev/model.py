@@ -120,7 +120,7 @@ class CLFusionBEV(nn.Module):
             self.lidar_encoder = LidarEncoder(
                 cfg.point_ch, cfg.vfe_ch, cfg.sparse_channels, cfg.pc_range, cfg.voxel_size,
                 cfg.max_voxels, cfg.sparse_blocks, xy_stride=cfg.lidar_bev_stride,
-                time_lag_span=cfg.time_lag_span,
+                time_lag_span=cfg.time_lag_span, sweep_bands=cfg.sweep_bands,
             )
         if uses_camera:
             self.camera_encoder = CameraEncoder(

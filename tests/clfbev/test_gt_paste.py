@@ -1,13 +1,15 @@
-"""GT-paste puts database objects, with exactly their points, where nothing else is."""
+"""GT-paste puts database objects, with exactly their points of every sweep, where nothing else is."""
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
 from clfbev.config import tiny
-from clfbev.data import NuScenesDetection
-from clfbev.gt_paste import GTDatabase, draw_objects, gt_paste, points_in_box
+from clfbev.data import NuScenesDetection, Sample
+from clfbev.gt_paste import GTDatabase, draw_objects, gt_paste, object_points, points_in_box
 from clfbev.ops.boxes import bev_iou
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -17,6 +19,37 @@ def test_points_in_box_rotated():
     box = np.array([1.0, 2.0, 0.0, 4.0, 2.0, 2.0, np.pi / 2])   # length along y after the rotation
     pts = np.array([[1.0, 3.9, 0.0], [1.0, 4.1, 0.0], [1.9, 2.0, 0.5], [2.1, 2.0, 0.0], [1.0, 2.0, 1.1]])
     np.testing.assert_array_equal(points_in_box(pts, box), [True, False, True, False, False])
+
+
+def test_object_points_follow_the_object_back_in_time():
+    """A car at 10 m/s along +x: its point of 0.3 s ago is 3 m behind the key-frame box and
+    belongs to it; a key-frame point there does not, nor an old point where the car is now."""
+    box = np.array([0.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0, 10.0, 0.0], np.float32)
+    pts = np.array([[-3.5, 0, 0, 0, 0.3],     # 0.3 s ago the car spanned x in [-5, -1]
+                    [-3.5, 0, 0, 0, 0.0],     # at the key frame it spans [-2, 2]
+                    [1.5, 0, 0, 0, 0.3],      # where the car is now, but 0.3 s ago: empty then
+                    [1.5, 0, 0, 0, 0.0]], np.float32)
+    np.testing.assert_array_equal(object_points(pts, box), [True, False, False, True])
+    parked = box.copy()
+    parked[7] = np.nan                        # unknown velocity: the key-frame box for every sweep
+    np.testing.assert_array_equal(object_points(pts, parked), [False, False, True, True])
+    db = GTDatabase.from_arrays([(pts, box[None], np.array([0]))], min_points=1)
+    np.testing.assert_array_equal(db.points[0], pts[[0, 3]])       # the trail is cut with the car
+
+
+def test_paste_keeps_clear_of_sweep_trails():
+    """A sample car parked 4.5 m behind where a database car at 10 m/s is now: the key-frame
+    boxes do not touch, but the database car drove through the parked one 0.4 s ago."""
+    moving = np.array([[0.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0, 10.0, 0.0]], np.float32)
+    db = GTDatabase(moving, np.array([0]), [np.array([[0, 0, 0, 0, 0.0], [-4, 0, 0, 0, 0.4]], np.float32)])
+    parked = torch.tensor([[-4.5, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0, 0.0, 0.0]])
+    pts = torch.tensor([[-4.5, 0.0, 0.0, 0.0, 0.0], [-4.5, 0.0, 0.0, 0.0, 0.45]])
+    s = Sample(images=torch.zeros(0), intrinsics=torch.zeros(0), T_lidar_from_cam=torch.zeros(0),
+               img_aug=torch.zeros(0), points=pts, gt_boxes=parked, gt_labels=torch.tensor([0]),
+               T_global_from_lidar=torch.eye(4, dtype=torch.float64), sample_token="t")
+    assert len(gt_paste(s, db, 1, np.random.default_rng(0)).gt_boxes) == 1      # not pasted
+    far = replace(s, gt_boxes=parked + torch.tensor([[-6.0, 0, 0, 0, 0, 0, 0, 0, 0]]))
+    assert len(gt_paste(far, db, 1, np.random.default_rng(0)).gt_boxes) == 2    # clear of it: pasted
 
 
 def test_paste_adds_objects_with_their_points(tiny_dataset):
@@ -38,9 +71,9 @@ def test_paste_adds_objects_with_their_points(tiny_dataset):
     iou = bev_iou(new[:, :7], new[:, :7]) - torch.eye(len(new), dtype=torch.float64)
     assert (iou <= 1e-9).all()                                                      # nor with each other
     pts = out.points.numpy()
-    for box in new.numpy():                          # each pasted box holds its database points exactly
+    for box in new.numpy():                          # each pasted object holds its database points exactly
         k = int(np.flatnonzero((np.abs(db.boxes - box.astype(np.float32)).max(1) == 0))[0])
-        inside = pts[points_in_box(pts, box)]
+        inside = pts[object_points(pts, box)]
         assert sorted(map(tuple, inside)) == sorted(map(tuple, db.points[k]))
     again = gt_paste(s, db, 8, np.random.default_rng(0))
     torch.testing.assert_close(again.points, out.points)

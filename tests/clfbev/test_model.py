@@ -173,7 +173,8 @@ def test_camera_bev_matches_lidar_bev_for_presets():
 @pytest.mark.parametrize("variant", ["concat", "mcm", "full"])
 def test_fused_bev_is_the_lidar_path_at_initialisation(variant):
     """Whatever the camera BEV holds, the fused BEV of a fresh model is exactly
-    ReLU(BN(conv_lidar(F_lidar))): MCM and BSM pass through, the fuser's camera weights are 0."""
+    ReLU(BN(conv_lidar(F_lidar))): MCM and BSM pass through (MCM its first fusion_dim channels:
+    the sweep bands after them enter with weight 0), the fuser's camera weights are 0."""
     cfg = tiny()
     torch.manual_seed(0)
     model = CLFusionBEV(cfg, variant).eval()
@@ -183,7 +184,8 @@ def test_fused_bev_is_the_lidar_path_at_initialisation(variant):
     with torch.no_grad():
         fused = [model.fuse(lidar, cam) for cam in cams]
         f = model.fuser
-        expected = f.act(f.bn(f.conv_lidar(lidar)))
+        expected = f.act(f.bn(f.conv_lidar(lidar if variant == "concat" else lidar[:, : cfg.fusion_dim])))
+    assert cfg.lidar_bev_channels > cfg.fusion_dim        # the sparse channels and the sweep bands
     assert torch.equal(fused[0], fused[1])
     assert torch.equal(fused[0], expected)
 

@@ -1,0 +1,55 @@
+"""The sweep bands: each point counted once, in its own cell and lag band, and the lidar BEV
+carries them as its last channels."""
+import math
+
+import pytest
+import torch
+
+from clfbev.lidar_encoder import LidarEncoder
+from clfbev.sweep_bev import sweep_occupancy
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+RANGE = (-6.4, -6.4, -2.0, 6.4, 6.4, 2.0)    # 8 x 8 BEV cells of 1.6 m
+
+
+def test_points_land_in_their_cell_and_band():
+    # x, y, z, intensity, lag; 10 sweeps of 0.05 s over a 0.45 s span, 5 bands of 0.09 s.
+    pts = torch.tensor([
+        [0.1, 0.1, 0.0, 0.0, 0.00],    # cell (iy 4, ix 4), band 0
+        [0.2, 0.3, 0.5, 0.0, 0.05],    # same cell, 0.05 s: still band 0
+        [0.2, 0.3, 0.5, 0.0, 0.10],    # band 1
+        [-6.3, 6.3, 0.0, 0.0, 0.45],   # corner cell (iy 7, ix 0), the oldest sweep: band 4
+        [-6.3, 6.3, 0.0, 0.0, 0.60],   # older than the span: the last band too
+        [6.5, 0.0, 0.0, 0.0, 0.00],    # outside x
+        [0.0, 0.0, 2.5, 0.0, 0.00],    # outside z
+        [0.1, 0.1, 0.0, 0.0, 0.20],    # the second sample: cell (4, 4), band 2
+    ])
+    batch = torch.tensor([0, 0, 0, 0, 0, 0, 0, 1])
+    bev = sweep_occupancy(pts, batch, 2, RANGE, (8, 8), 5, 0.45)
+    expected = torch.zeros(2, 5, 8, 8)
+    expected[0, 0, 4, 4] = math.log(3.0)          # log(1 + 2 points)
+    expected[0, 1, 4, 4] = math.log(2.0)
+    expected[0, 4, 7, 0] = math.log(3.0)
+    expected[1, 2, 4, 4] = math.log(2.0)
+    torch.testing.assert_close(bev, expected)
+
+
+def test_lidar_bev_ends_with_the_bands():
+    g = torch.Generator().manual_seed(0)
+    lo, hi = torch.tensor(RANGE[:3]), torch.tensor(RANGE[3:])
+    pts = torch.cat([lo + (hi - lo) * torch.rand(2000, 3, generator=g), torch.rand(2000, 1, generator=g),
+                     torch.randint(0, 10, (2000, 1), generator=g) * 0.05], dim=1)
+    torch.manual_seed(0)
+    enc = LidarEncoder(5, 16, (8, 16, 16), RANGE, (0.4, 0.4, 0.4), 100000, time_lag_span=0.45,
+                       sweep_bands=5).eval()
+    plain = LidarEncoder(5, 16, (8, 16, 16), RANGE, (0.4, 0.4, 0.4), 100000, time_lag_span=0.45).eval()
+    plain.load_state_dict(enc.state_dict())
+    with torch.no_grad():
+        bev, base = enc([pts]), plain([pts])
+    assert enc.out_channels == plain.out_channels + 5 == bev.shape[1]
+    torch.testing.assert_close(bev[:, :-5], base, rtol=0, atol=0)
+    ny, nx = enc.out_size
+    torch.testing.assert_close(bev[:, -5:], sweep_occupancy(pts, torch.zeros(2000, dtype=torch.long), 1, RANGE,
+                                                            (ny, nx), 5, 0.45))
+    assert bev[0, -5:].exp().sub(1).sum().round() == 2000   # every point counted once
