@@ -61,6 +61,30 @@ def object_points(points: np.ndarray, box: np.ndarray) -> np.ndarray:
     return points_in_box(points[:, :3] + shift, box[:7])
 
 
+class SortedPoints:
+    """A point cloud (n, >= 5) ordered by x, so that an object's points are looked for only in
+    the slab of x that its box reaches over the sweeps: :func:`object_points` on the whole
+    cloud costs about 15 ms per object for a 10-sweep sample of 290k points, and a database of
+    the benchmark's 640 training samples cuts 24k objects."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = points
+        self.order = np.argsort(points[:, 0], kind="stable")
+        self.x = points[self.order, 0]
+        self.oldest = float(points[:, 4].max()) if len(points) else 0.0   # s, the oldest sweep's lag
+
+    def object_index(self, box: np.ndarray) -> np.ndarray:
+        """Increasing indices of the points :func:`object_points` gives ``box`` (9,)."""
+        # A point inside the box has |x - centre_x| <= (l |cos| + w |sin|) / 2; the centre moves
+        # back along vx over the sweeps. The 1 mm margin covers float32 rounding.
+        half = 0.5 * (abs(box[3] * np.cos(box[6])) + abs(box[4] * np.sin(box[6]))) + 1e-3
+        then = box[0] - np.nan_to_num(box[7]) * self.oldest
+        lo = min(box[0], then) - half
+        hi = max(box[0], then) + half
+        candidates = np.sort(self.order[np.searchsorted(self.x, lo, "left") : np.searchsorted(self.x, hi, "right")])
+        return candidates[object_points(self.points[candidates], box)]
+
+
 @dataclass(frozen=True)
 class GTDatabase:
     """Objects cut from a dataset: per object its box (9,), label and points (k, C), lidar frame."""
@@ -81,9 +105,10 @@ class GTDatabase:
         from)."""
         boxes, labels, points = [], [], []
         for pts, gt, lab in samples:
+            cloud = SortedPoints(pts)
             for box, label in zip(gt, lab):          # a loop over objects; each test is vectorised
-                inside = object_points(pts, box)
-                if inside.sum() >= min_points:
+                inside = cloud.object_index(box)
+                if len(inside) >= min_points:
                     boxes.append(box)
                     labels.append(label)
                     points.append(pts[inside])
@@ -140,8 +165,9 @@ def gt_paste(sample: Sample, db: GTDatabase, n: int, rng: np.random.Generator, b
         return sample
     pts = sample.points.numpy()
     keep = np.ones(len(pts), bool)
+    cloud = SortedPoints(pts)
     for i in chosen:
-        keep &= ~object_points(pts, db.boxes[i])
+        keep[cloud.object_index(db.boxes[i])] = False
     new_pts = np.concatenate([pts[keep], *[db.points[i] for i in chosen]]).astype(pts.dtype)
     was_pasted = np.zeros(len(pts), bool) if sample.pasted is None else sample.pasted.numpy()
     pasted = np.concatenate([was_pasted[keep], np.ones(len(new_pts) - int(keep.sum()), bool)])

@@ -9,7 +9,7 @@ import torch
 
 from clfbev.config import tiny
 from clfbev.data import NuScenesDetection, Sample
-from clfbev.gt_paste import GTDatabase, draw_objects, gt_paste, object_points, points_in_box
+from clfbev.gt_paste import GTDatabase, SortedPoints, draw_objects, gt_paste, object_points, points_in_box
 from clfbev.ops.boxes import bev_iou
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -35,6 +35,25 @@ def test_object_points_follow_the_object_back_in_time():
     np.testing.assert_array_equal(object_points(pts, parked), [False, False, True, True])
     db = GTDatabase.from_arrays([(pts, box[None], np.array([0]))], min_points=1)
     np.testing.assert_array_equal(db.points[0], pts[[0, 3]])       # the trail is cut with the car
+
+
+def test_sorted_points_find_exactly_the_object_points():
+    """The x-slab search gives what the test on every point gives, for moving boxes of any yaw
+    and direction, boxes at the cloud's edge and beyond it."""
+    g = np.random.default_rng(0)
+    pts = np.concatenate([g.uniform(-20, 20, (20000, 3)), g.random((20000, 1)),
+                          g.integers(0, 10, (20000, 1)) * 0.05], axis=1).astype(np.float32)
+    pts[:, 2] *= 0.1
+    cloud = SortedPoints(pts)
+    hits = 0
+    for _ in range(200):
+        box = np.concatenate([g.uniform(-22, 22, 2), [0.0], g.uniform(0.3, 6, 2), [2.0], g.uniform(-np.pi, np.pi, 1),
+                              g.uniform(-15, 15, 2)]).astype(np.float32)
+        expected = np.flatnonzero(object_points(pts, box))
+        np.testing.assert_array_equal(cloud.object_index(box), expected)
+        hits += len(expected) > 0
+    assert hits > 100
+    assert len(SortedPoints(pts[:0]).object_index(box)) == 0
 
 
 def test_paste_keeps_clear_of_sweep_trails():
