@@ -112,14 +112,25 @@ def alpha_of_visibility(mor: float) -> float:
 def fog_image(rgb: np.ndarray, range_m: np.ndarray, alpha: float, airlight=AIRLIGHT) -> np.ndarray:
     """Koschmieder fog. rgb (H, W, 3) uint8, range_m (H, W) metres along each pixel's ray, 0 where
     nothing was hit (sky: full airlight). Returns uint8 ``round(J t + A (1 - t))``."""
-    # float32 with OpenCV's vectorised arithmetic: about 5x faster than float64 numpy at 1600x900.
     t = np.exp(np.float32(-alpha) * range_m.astype(np.float32, copy=False))
     t[range_m <= 0] = 0.0
-    A = tuple(float(a) for a in airlight) + (0.0,)
-    x = cv2.subtract(rgb.astype(np.float32), A)
-    x = cv2.multiply(x, cv2.merge([t, t, t]))
-    x = cv2.add(x, A)                          # J t + A (1 - t), as A + (J - A) t; in [0, 255]
-    return cv2.convertScaleAbs(x)              # rounds to the nearest level, saturates
+    # OpenCV's blendLinear computes (J w1 + A w2) / (w1 + w2 + 1e-5) per pixel, from the uint8
+    # image to the nearest uint8 level, in one pass: 4-5 ms at 1600x900 against 21 ms for the
+    # same in separate float32 steps (each allocating and touching a 17 MB array). Weights
+    # summing to 1e4 make its epsilon a 1e-9 share (with t and 1 - t it would be 1e-5, 0.0026 of
+    # a level at 255).
+    w = t * np.float32(1e4)
+    return cv2.blendLinear(rgb, _airlight_image(rgb.shape, tuple(float(a) for a in airlight)), w,
+                           np.float32(1e4) - w)
+
+
+@functools.lru_cache(maxsize=4)
+def _airlight_image(shape: tuple[int, ...], airlight: tuple[float, ...]) -> np.ndarray:
+    """(H, W, 3) uint8 image of the airlight colour (rounded to levels), read-only."""
+    image = np.empty(shape, np.uint8)
+    image[:] = np.round(airlight).astype(np.uint8)
+    image.flags.writeable = False
+    return image
 
 
 def lens_dirt(rgb: np.ndarray, severity: int, rng: np.random.Generator) -> np.ndarray:
