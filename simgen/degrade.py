@@ -120,8 +120,8 @@ def fog_image(rgb: np.ndarray, range_m: np.ndarray, alpha: float, airlight=AIRLI
     # summing to 1e4 make its epsilon a 1e-9 share (with t and 1 - t it would be 1e-5, 0.0026 of
     # a level at 255).
     w = t * np.float32(1e4)
-    return cv2.blendLinear(rgb, _airlight_image(rgb.shape, tuple(float(a) for a in airlight)), w,
-                           np.float32(1e4) - w)
+    airlight_image = _airlight_image(rgb.shape, tuple(float(a) for a in airlight))
+    return cv2.blendLinear(np.ascontiguousarray(rgb), airlight_image, w, np.float32(1e4) - w)
 
 
 @functools.lru_cache(maxsize=4)
