@@ -234,8 +234,8 @@ def tiny() -> ModelConfig:
     attention over 16,384 cells would be the slowest part by far). 10 lidar sweeps (0.45 s,
     as the nuScenes peers): with 3 (0.1 s) a car at 8 m/s moves 0.8 m between the oldest and
     the newest sweep, one BEV cell (the benchmark's models predict no velocity with 3 sweeps or
-    with 10, docs/benchmarks.md); the point counts of 5 lag bands of 0.1 s per BEV cell join the
-    lidar BEV, where the backbone can compare the old and the new sweeps' places
+    with 10, docs/benchmarks.md); the point counts of 5 lag bands (two sweeps each) per BEV
+    cell join the lidar BEV, where the backbone can compare the old and the new sweeps' places
     (:mod:`clfbev.sweep_bev`). One training step of 'full' costs about 1.5 CPU seconds per
     sample (docs/benchmarks.md)."""
     return ModelConfig(n_sweeps=10, sweep_bands=5)

@@ -150,22 +150,21 @@ def gt_paste(sample: Sample, db: GTDatabase, n: int, rng: np.random.Generator, b
         return sample
     order = draw_objects(db, 4 * n, rng, balanced)     # a few spares for those that collide
     boxes = sample.gt_boxes.numpy()
-    oldest = float(sample.points[:, 4].max()) if len(sample.points) else 0.0
-    taken = _swept(boxes, oldest)
+    pts = sample.points.numpy()
+    cloud = SortedPoints(pts)
+    taken = _swept(boxes, cloud.oldest)
     chosen = []
     for i in order:
         if len(chosen) == n:
             break
-        cand = _swept(db.boxes[i : i + 1], oldest)
+        cand = _swept(db.boxes[i : i + 1], cloud.oldest)
         if len(taken) and (bev_iou(cand, taken) > 0).any():
             continue
         chosen.append(int(i))
         taken = torch.cat([taken, cand])
     if not chosen:
         return sample
-    pts = sample.points.numpy()
     keep = np.ones(len(pts), bool)
-    cloud = SortedPoints(pts)
     for i in chosen:
         keep[cloud.object_index(db.boxes[i])] = False
     new_pts = np.concatenate([pts[keep], *[db.points[i] for i in chosen]]).astype(pts.dtype)
