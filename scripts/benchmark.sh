@@ -11,6 +11,10 @@
 # Everything resumes: rerun the same command after an interruption (even kill -9). A run with an
 # evaluation is skipped, a trained run is only evaluated, a partial training continues from its
 # last.pt. The table is rewritten after every run, so it can be completed in parts.
+# Each evaluated run also leaves its record (run.json, wall.jsonl, metrics_summary.json; a few kB)
+# in RECORD, which is tracked: on another machine or a fresh clone a recorded run is restored
+# from there instead of retrained, so the table can be completed in parts across machines too.
+# Delete a run's record folder to run it again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -27,6 +31,7 @@ RES=${RES:-704x396}             # camera resolution WxH
 STEPS=${STEPS:-1200}            # optimizer steps per run
 OUT=${OUT:-benchmark_out}       # data and run folders
 RESULTS=${RESULTS:-docs/results.md}
+RECORD=${RECORD:-${RESULTS%.md}}  # the evaluated runs' records, a folder per run (docs/results/)
 THREADS=${THREADS:-$(nproc)}    # torch threads per training; 1 to run two benchmarks side by side
 DATA_SEED=1
 VAL_FRACTION=0.2
@@ -51,13 +56,20 @@ for run in "${ALL_RUNS[@]}"; do
   if [ $# -eq 0 ] || [[ " $* " == *" ${run%_s*} "* ]] || [[ " $* " == *" $run "* ]]; then RUNS+=("$run"); fi
 done
 
-state_of() {  # run folder -> done | started | pending (from the files alone: no python yet)
-  if [ -f "$1/eval/metrics_summary.json" ]; then echo done
-  elif [ -f "$1/last.pt" ]; then echo started
+# The benchmark's settings: a record or an OUT of other settings is never mixed into this table.
+settings="{\"scenes\": $SCENES, \"samples_per_scene\": $SAMPLES, \"resolution\": \"$RES\", \"data_seed\": $DATA_SEED, \"val_fraction\": $VAL_FRACTION, \"steps\": $STEPS}"
+
+recorded() {  # run -> true when RECORD holds its evaluation, of this benchmark's settings
+  [ -f "$RECORD/$1/metrics_summary.json" ] && [ "$(cat "$RECORD/$1/benchmark.json" 2>/dev/null)" = "$settings" ]
+}
+state_of() {  # run -> done | recorded | started | pending (from the files alone: no python yet)
+  if [ -f "$OUT/$1/eval/metrics_summary.json" ]; then echo done
+  elif [ -f "$OUT/$1/last.pt" ]; then echo started
+  elif recorded "$1"; then echo recorded
   else echo pending; fi
 }
 if [ $LIST = 1 ]; then
-  for run in "${RUNS[@]}"; do echo "$run $(state_of "$OUT/$run")"; done
+  for run in "${RUNS[@]}"; do echo "$run $(state_of "$run")"; done
   exit 0
 fi
 
@@ -68,7 +80,6 @@ mkdir -p "$OUT"
 
 # One OUT holds one benchmark: runs of other data or another step budget must not be mixed
 # into one table, and a resumed training would refuse another --max-steps anyway.
-settings="{\"scenes\": $SCENES, \"samples_per_scene\": $SAMPLES, \"resolution\": \"$RES\", \"data_seed\": $DATA_SEED, \"val_fraction\": $VAL_FRACTION, \"steps\": $STEPS}"
 if [ -f "$OUT/benchmark.json" ] && [ "$(cat "$OUT/benchmark.json")" != "$settings" ]; then
   echo "benchmark: $OUT holds a benchmark with other settings ($(cat "$OUT/benchmark.json")); use another OUT" >&2
   exit 2
@@ -89,6 +100,18 @@ record() {  # run folder, stage, extra JSON fields: one line per part in RUN/wal
 table() {
   $PY scripts/results_table.py "$OUT" --runs "${ALL_RUNS[@]}" --out "$RESULTS"
 }
+keep_record() {  # run: its small files into RECORD/run, each replaced whole
+  local rec=$RECORD/$1 f
+  mkdir -p "$rec"
+  for f in "$OUT/benchmark.json" "$OUT/$1/run.json" "$OUT/$1/wall.jsonl" "$OUT/$1/eval/metrics_summary.json"; do
+    cp "$f" "$rec/.$(basename "$f").tmp" && mv "$rec/.$(basename "$f").tmp" "$rec/$(basename "$f")"
+  done
+}
+restore() {  # run: its record back into OUT/run, as its evaluation left it
+  mkdir -p "$OUT/$1/eval"
+  cp "$RECORD/$1/run.json" "$RECORD/$1/wall.jsonl" "$OUT/$1/"
+  cp "$RECORD/$1/metrics_summary.json" "$OUT/$1/eval/"
+}
 
 # 2. Train and evaluate each run; the table is rewritten after each evaluation.
 evaluated=0
@@ -96,10 +119,11 @@ for run in "${RUNS[@]}"; do
   dir=$OUT/$run
   variant=${run%_s*}
   seed=${run##*_s}
-  if [ "$(state_of "$dir")" = done ]; then
-    echo "benchmark: $run evaluated earlier (skipped)"
-    continue
-  fi
+  case $(state_of "$run") in
+    done) keep_record "$run"; echo "benchmark: $run evaluated earlier (skipped)"; continue ;;
+    recorded) restore "$run"; echo "benchmark: $run restored from $RECORD/$run (delete that folder to rerun it)"
+              continue ;;
+  esac
   mkdir -p "$dir"
 
   step=0
@@ -134,10 +158,11 @@ for run in "${RUNS[@]}"; do
   t0=$(date +%s)
   .venv/bin/clfbev eval --data "$DATA" --ckpt "$dir/last.pt" --split sim-val --out "$dir/eval"
   record "$dir" eval "\"seconds\": $(( $(date +%s) - t0 ))"
+  keep_record "$run"
   table
   evaluated=1
 done
 
-# 3. With nothing evaluated now (all done before), the table is still rewritten: the code that
-# writes it may have changed since.
+# 3. With nothing evaluated now (all done or restored), the table is still rewritten: the code
+# that writes it may have changed since.
 [ $evaluated = 1 ] || table

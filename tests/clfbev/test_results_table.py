@@ -10,6 +10,7 @@ from __future__ import annotations
 import ast
 import importlib.util
 import json
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -250,3 +251,28 @@ def test_the_runs_their_order_and_the_variants_clfbev_knows(tmp_path):
     runs = bench_sh(tmp_path, "--list", "full_s1", "camera").stdout.split()[::2]
     assert runs == ["camera_s0", "full_s1"]                                     # runs by name, too
     assert sorted(p.name for p in (tmp_path / "repo").iterdir()) == ["scripts"]
+
+
+def test_a_recorded_run_counts_only_with_the_same_settings(tmp_path):
+    """docs/results/RUN holds an evaluated run's record: --list calls it recorded when its
+    benchmark.json is this benchmark's settings, pending otherwise; the OUT folder wins."""
+    bench_sh(tmp_path, "--list")                                    # makes the repo copy
+    repo = tmp_path / "repo"
+    settings = ('{"scenes": 40, "samples_per_scene": 20, "resolution": "704x396", "data_seed": 1, '
+                '"val_fraction": 0.2, "steps": 1200}')
+    for name, written in (("lidar_s0", settings), ("full_s0", settings.replace("1200", "600"))):
+        rec = repo / "docs" / "results" / name
+        rec.mkdir(parents=True)
+        (rec / "benchmark.json").write_text(written + "\n")
+        (rec / "metrics_summary.json").write_text("{}")
+    state = dict(zip(*[iter(bench_sh(tmp_path, "--list").stdout.split())] * 2))
+    assert state["lidar_s0"] == "recorded" and state["full_s0"] == "pending" and state["lidar_s1"] == "pending"
+    (repo / "benchmark_out" / "lidar_s0").mkdir(parents=True)
+    (repo / "benchmark_out" / "lidar_s0" / "last.pt").write_bytes(b"")
+    assert "lidar_s0 started" in bench_sh(tmp_path, "--list", "lidar_s0").stdout
+    # A smoke test's records go beside its own RESULTS, not into docs/results.
+    smoke = dict(os.environ, RESULTS=str(tmp_path / "smoke" / "results.md"))
+    proc = subprocess.run(["bash", str(repo / "scripts" / "benchmark.sh"), "--list", "lidar_s0"], capture_output=True,
+                          text=True, timeout=30, env={**smoke, "OUT": str(tmp_path / "smoke_out")})
+    assert proc.stdout.split() == ["lidar_s0", "pending"]
+
