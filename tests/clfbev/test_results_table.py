@@ -219,14 +219,15 @@ def test_a_missing_benchmark_is_one_line(tmp_path, capsys):
 
 # ---------------------------------------------------------------- benchmark.sh
 
-def bench_sh(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
-    """Run a copy of benchmark.sh from an empty repository folder (it works from its parent)."""
+def bench_sh(tmp_path: Path, *args: str, **env: str) -> subprocess.CompletedProcess:
+    """Run a copy of benchmark.sh from an empty repository folder (it works from its parent),
+    with ``env`` added to the environment."""
     repo = tmp_path / "repo"
     if not repo.exists():
         (repo / "scripts").mkdir(parents=True)
         shutil.copy(ROOT / "scripts" / "benchmark.sh", repo / "scripts" / "benchmark.sh")
     return subprocess.run(["bash", str(repo / "scripts" / "benchmark.sh"), *args], capture_output=True, text=True,
-                          timeout=30)
+                          timeout=30, env={**os.environ, **env})
 
 
 def test_an_unknown_variant_is_one_line_exit_2_and_creates_nothing(tmp_path):
@@ -271,8 +272,6 @@ def test_a_recorded_run_counts_only_with_the_same_settings(tmp_path):
     (repo / "benchmark_out" / "lidar_s0" / "last.pt").write_bytes(b"")
     assert "lidar_s0 started" in bench_sh(tmp_path, "--list", "lidar_s0").stdout
     # A smoke test's records go beside its own RESULTS, not into docs/results.
-    smoke = dict(os.environ, RESULTS=str(tmp_path / "smoke" / "results.md"))
-    proc = subprocess.run(["bash", str(repo / "scripts" / "benchmark.sh"), "--list", "lidar_s0"], capture_output=True,
-                          text=True, timeout=30, env={**smoke, "OUT": str(tmp_path / "smoke_out")})
-    assert proc.stdout.split() == ["lidar_s0", "pending"]
-
+    smoke = bench_sh(tmp_path, "--list", "lidar_s0", RESULTS=str(tmp_path / "smoke" / "results.md"),
+                     OUT=str(tmp_path / "smoke_out"))
+    assert smoke.stdout.split() == ["lidar_s0", "pending"]
