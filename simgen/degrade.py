@@ -63,7 +63,12 @@ exactly. A sweep then costs one look-up per point.
 Parameters: ``beta = 0.046 / MOR`` (Rasshofer et al. 2011, advection fog; Hahner's default);
 ``tau_H = 20`` ns and the linear crossover from ``xi(0.9 m) = 0`` to ``xi(1.0 m) = 1`` are Hahner's
 defaults; no published pulse width or crossover of the HDL-32E is used, so Hahner's are kept
-(docs/fog.md shows how the figures move with either).
+(docs/fog.md shows how the figures move with either). Hahner et al.'s published procedure
+scales its soft echo from each point's intensity with ``gamma = 1e-6`` and a soft-target
+integral over time (s/m^2), where the lidar equation has it over range (``dR' = c dt / 2``): this
+amounts to a Lambertian reflectivity ``gamma c / 2 = 150`` for every point, an echo hundreds of
+times weaker than here, which is why its fog wins only where the attenuated intensity rounds
+to 0 (docs/fog.md).
 Intensities use lidar.py's scale: ``intensity = 255 * clip(p * ref_range^2, 0, 1)``.
 
 The previous model compared ``rho cos / R^2`` with ``beta int`` (the soft side without its pi)
