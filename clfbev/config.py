@@ -57,6 +57,8 @@ class ModelConfig:
     BEV backbone: ``bev_channels`` (per stage; stage i > 0 has stride 2), ``bev_blocks`` (3x3
     convs per stage), ``bev_up_ch`` (channels of each stage after upsampling to stride 1).
     Head / decoding: ``anchor_rotations``, ``code_size``, ``n_dir_bins``, ``prior_prob``,
+    ``velocity_tower`` (0: the velocity is two of the head's 1x1 residuals; else the width of
+    the :class:`clfbev.head.VelocityTower` that predicts it from the BEV and the sweep bands),
     ``score_thr``, ``nms_iou``, ``max_per_sample``, ``pre_nms``. Loss: ``loss``.
     """
 
@@ -97,6 +99,7 @@ class ModelConfig:
     code_size: int = 9
     n_dir_bins: int = 2
     prior_prob: float = 0.01
+    velocity_tower: int = 0
     score_thr: float = 0.1
     nms_iou: float = 0.2
     max_per_sample: int = 500

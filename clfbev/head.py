@@ -86,6 +86,44 @@ class HeadOutput:
         )
 
 
+class VelocityTower(nn.Module):
+    """The velocity residuals from their own convolutions: three 3x3 conv-BN-ReLU layers with
+    dilations 1, 2 and 4 (a 15-cell, 12 m receptive field on the 0.8 m BEV, the length of a
+    car's 10-sweep trail and the car), then a 1x1 convolution to ``vx, vy`` per anchor.
+
+    Why: in a shared 1x1 head the velocity channels read the features that classification and
+    box regression shape, in which parked and moving cars look alike; the L1-like loss then
+    settles on the parked majority's 0 (docs/benchmarks.md, the linear probe). Here only the
+    velocity loss trains these layers, on the backbone output and the sweep bands (the point
+    counts per lag band, :mod:`clfbev.sweep_bev`), the trail itself.
+
+    Parameters
+    ----------
+    in_ch : channels of the backbone output plus the motion channels.
+    n_anchors : anchors per cell.
+    channels : width of the three convolutions.
+    """
+
+    DILATIONS = (1, 2, 4)
+
+    def __init__(self, in_ch: int, n_anchors: int, channels: int) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        c = in_ch
+        for d in self.DILATIONS:
+            layers += [nn.Conv2d(c, channels, 3, padding=d, dilation=d, bias=False),
+                       nn.BatchNorm2d(channels, eps=1e-3, momentum=0.01), nn.ReLU(inplace=True)]
+            c = channels
+        self.body = nn.Sequential(*layers)
+        self.out = nn.Conv2d(channels, n_anchors * 2, 1)
+        nn.init.normal_(self.out.weight, std=0.01)   # starts at 0 m/s, like the head's residuals
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x (B, in_ch, H, W) -> (B, n_anchors * 2, H, W), anchor-major ``(vx, vy)``."""
+        return self.out(self.body(x))
+
+
 class AnchorHead(nn.Module):
     """1x1 convolutions from the fused BEV to per-anchor logits, residuals and directions.
 
@@ -99,6 +137,9 @@ class AnchorHead(nn.Module):
     prior_prob : initial foreground probability of every anchor. With focal loss the bias
         ``-log((1 - p) / p)`` keeps the ~all-background start from drowning the first steps in
         a huge background loss (RetinaNet).
+    velocity_tower : 0, the velocity is 2 of the 1x1 box residuals; else the width of a
+        :class:`VelocityTower` that predicts it (needs ``code_size`` 9).
+    motion_ch : channels given to the tower beside the BEV features (the sweep bands).
     """
 
     def __init__(
@@ -109,14 +150,19 @@ class AnchorHead(nn.Module):
         code_size: int = 9,
         n_dir_bins: int = 2,
         prior_prob: float = 0.01,
+        velocity_tower: int = 0,
+        motion_ch: int = 0,
     ) -> None:
         super().__init__()
+        if velocity_tower and code_size != 9:
+            raise ValueError(f"a velocity tower needs code_size 9 (7 + vx, vy), got {code_size}")
         self.n_classes, self.n_rot = n_classes, n_rot
         self.code_size, self.n_dir_bins = code_size, n_dir_bins
         n_anchors = n_classes * n_rot
         self.conv_cls = nn.Conv2d(in_ch, n_anchors, 1)
-        self.conv_box = nn.Conv2d(in_ch, n_anchors * code_size, 1)
+        self.conv_box = nn.Conv2d(in_ch, n_anchors * (7 if velocity_tower else code_size), 1)
         self.conv_dir = nn.Conv2d(in_ch, n_anchors * n_dir_bins, 1)
+        self.velocity = VelocityTower(in_ch + motion_ch, n_anchors, velocity_tower) if velocity_tower else None
         # Small weights: the first residuals are ~0 (boxes start at the anchors) and the first
         # scores ~prior_prob everywhere.
         for conv in (self.conv_cls, self.conv_box, self.conv_dir):
@@ -124,9 +170,16 @@ class AnchorHead(nn.Module):
             nn.init.zeros_(conv.bias)
         nn.init.constant_(self.conv_cls.bias, -math.log((1.0 - prior_prob) / prior_prob))
 
-    def forward(self, bev: Tensor) -> HeadOutput:
-        """bev (B, in_ch, H, W) -> HeadOutput on the same grid."""
-        return HeadOutput(self.conv_cls(bev), self.conv_box(bev), self.conv_dir(bev))
+    def forward(self, bev: Tensor, motion: Tensor | None = None) -> HeadOutput:
+        """bev (B, in_ch, H, W), motion (B, motion_ch, H, W) or None -> HeadOutput on the same grid."""
+        box = self.conv_box(bev)
+        if self.velocity is not None:
+            tower_in = bev if motion is None else torch.cat([bev, motion.to(bev.dtype)], dim=1)
+            b, _, h, w = box.shape
+            n_anchors = self.n_classes * self.n_rot
+            vel = self.velocity(tower_in).view(b, n_anchors, 2, h, w)
+            box = torch.cat([box.view(b, n_anchors, 7, h, w), vel], dim=2).view(b, n_anchors * 9, h, w)
+        return HeadOutput(self.conv_cls(bev), box, self.conv_dir(bev))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -145,8 +145,10 @@ class CLFusionBEV(nn.Module):
 
         # BEV backbone and head.
         self.backbone = BEVBackbone(cfg.bev_channels_of(variant), cfg.bev_channels, cfg.bev_blocks, cfg.bev_up_ch)
+        # The velocity tower also reads the sweep bands, the last channels of the lidar BEV.
+        self.motion_ch = cfg.sweep_bands if uses_lidar and cfg.velocity_tower else 0
         self.head = AnchorHead(self.backbone.out_channels, len(cfg.class_names), len(cfg.anchor_rotations),
-                               cfg.code_size, cfg.n_dir_bins, cfg.prior_prob)
+                               cfg.code_size, cfg.n_dir_bins, cfg.prior_prob, cfg.velocity_tower, self.motion_ch)
         anchors = make_anchors(cfg.class_names, cfg.head_feature_size, cfg.pc_range, cfg.anchor_rotations)
         self.register_buffer("anchors", anchors, persistent=False)  # (ny, nx, n_cls, n_rot, 7)
         self.thresholds = match_thresholds(cfg.class_names)
@@ -155,22 +157,24 @@ class CLFusionBEV(nn.Module):
 
     def bev_features(self, batch: Batch) -> Tensor:
         """The BEV map the backbone sees, (B, cfg.bev_channels_of(variant), ny, nx), lidar frame."""
-        return self._bev_and_depth(batch)[0]
+        return self._encode(batch)[0]
 
-    def _bev_and_depth(self, batch: Batch) -> tuple[Tensor, Tensor | None]:
-        """The backbone's BEV map and the camera's depth distribution (B, N, D, h, w), or None
-        for the lidar variant."""
-        lidar_bev = cam_bev = depth = None
+    def _encode(self, batch: Batch) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """The backbone's BEV map; the camera's depth distribution (B, N, D, h, w), or None for
+        the lidar variant; the velocity tower's motion channels (B, motion_ch, ny, nx), or None."""
+        lidar_bev = cam_bev = depth = motion = None
         if self.lidar_encoder is not None:
             lidar_bev = self.lidar_encoder(batch.points)                      # (B, Cl, ny, nx)
+            if self.motion_ch:
+                motion = lidar_bev[:, -self.motion_ch:]
         if self.camera_encoder is not None:
             cam_bev, depth = self.camera_encoder.lift_splat(batch.images, batch.intrinsics,
                                                             batch.T_lidar_from_cam, batch.img_aug)
         if self.variant == "lidar":
-            return lidar_bev, None
+            return lidar_bev, None, motion
         if self.variant == "camera":
-            return cam_bev, depth
-        return self.fuse(lidar_bev, cam_bev), depth
+            return cam_bev, depth, None
+        return self.fuse(lidar_bev, cam_bev), depth, motion
 
     def fuse(self, lidar_bev: Tensor, cam_bev: Tensor) -> Tensor:
         """MCM -> ConvFuser -> BSM, as the variant has them: (B, Cl, ny, nx), (B, Cc, ny, nx) ->
@@ -187,7 +191,8 @@ class CLFusionBEV(nn.Module):
     def forward(self, batch: Batch) -> HeadOutput:
         """Batch -> head maps on the BEV grid: cls (B, A, ny, nx), box (B, A * code_size, ny, nx),
         dir (B, A * n_dir_bins, ny, nx), with A = n_classes * n_rotations."""
-        return self.head(self.backbone(self.bev_features(batch)))
+        bev, _, motion = self._encode(batch)
+        return self.head(self.backbone(bev), motion)
 
     # ------------------------------------------------------------------ training and inference
 
@@ -200,8 +205,8 @@ class CLFusionBEV(nn.Module):
         ``batch.gt_labels`` (M_i,) indices into ``cfg.class_names``.
         """
         cfg = self.cfg
-        bev, depth = self._bev_and_depth(batch)
-        out = self.head(self.backbone(bev))
+        bev, depth, motion = self._encode(batch)
+        out = self.head(self.backbone(bev), motion)
         targets = stack_targets([
             assign_targets(self.anchors, boxes[:, : cfg.code_size], labels, self.thresholds,
                            n_dir_bins=cfg.n_dir_bins)

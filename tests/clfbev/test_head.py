@@ -116,6 +116,33 @@ def test_head_shapes_prior_and_flatten_layout():
 # ----------------------------------------------------------------------------------------------
 
 
+def test_velocity_tower_owns_the_velocity_residuals_only():
+    """With a tower, residuals 0-6 of every anchor are the 1x1 head's and 7-8 the tower's, in
+    the anchor-major layout; only the velocity loss reaches the tower, and the motion channels
+    reach the velocity alone."""
+    torch.manual_seed(0)
+    head = AnchorHead(in_ch=16, n_classes=3, n_rot=2, code_size=9, velocity_tower=8, motion_ch=5).eval()
+    bev, motion = torch.randn(2, 16, 6, 7), torch.randn(2, 5, 6, 7)
+    out = head(bev, motion)
+    assert out.box_deltas.shape == (2, 6 * 9, 6, 7)
+    box = out.box_deltas.view(2, 6, 9, 6, 7)
+    assert torch.equal(box[:, :, :7], head.conv_box(bev).view(2, 6, 7, 6, 7))
+    assert torch.equal(box[:, :, 7:], head.velocity(torch.cat([bev, motion], 1)).view(2, 6, 2, 6, 7))
+    other = head(bev, motion + 1.0).box_deltas.view(2, 6, 9, 6, 7)
+    assert torch.equal(other[:, :, :7], box[:, :, :7]) and not torch.equal(other[:, :, 7:], box[:, :, 7:])
+
+    head.train()
+    box = head(bev, motion).box_deltas.view(2, 6, 9, 6, 7)
+    box[:, :, :7].sum().backward(retain_graph=True)
+    assert all(p.grad is None or not p.grad.any() for p in head.velocity.parameters())
+    head.zero_grad(set_to_none=True)
+    box[:, :, 7:].sum().backward()
+    assert head.conv_box.weight.grad is None or not head.conv_box.weight.grad.any()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in head.velocity.parameters())
+    with pytest.raises(ValueError, match="code_size 9"):
+        AnchorHead(in_ch=16, n_classes=3, code_size=7, velocity_tower=8)
+
+
 def test_gt_on_anchor_is_positive_with_zero_residuals_class_aware():
     names = ("car", "construction_vehicle", "pedestrian")
     anchors = line_anchors(names)

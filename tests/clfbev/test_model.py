@@ -163,6 +163,23 @@ def test_derived_sizes_match_real_shapes(variant):
     assert "anchors" not in model.state_dict()   # derived, not saved
 
 
+@pytest.mark.parametrize("variant", ["lidar", "camera", "full"])
+def test_velocity_tower_trains_and_reads_the_sweep_bands(variant):
+    """A tower model trains and predicts; with a lidar it is given the sweep bands, the last
+    channels of the lidar BEV (the camera variant has none)."""
+    cfg = replace(tiny(), velocity_tower=8)
+    model = CLFusionBEV(cfg, variant)
+    assert model.motion_ch == (0 if variant == "camera" else cfg.sweep_bands)
+    assert model.head.velocity.body[0].in_channels == cfg.head_in_channels + model.motion_ch
+    batch = make_batch(cfg)
+    opt = torch.optim.SGD(model.parameters(), lr=1e-3)
+    losses = train_step(model, batch, opt)
+    assert torch.isfinite(losses["loss"]) and losses["loss_vel"] >= 0
+    model.eval()
+    dets = model.predict(batch, score_thr=0.0, max_per_sample=10)
+    assert dets[0].boxes.shape[1] == 9 and torch.isfinite(dets[0].boxes).all()
+
+
 def test_camera_bev_matches_lidar_bev_for_presets():
     for cfg in (tiny(), paper(), replace(tiny(), voxel_size=(0.2, 0.4, 0.4), sparse_channels=(16, 32))):
         assert cfg.cam_bev_shape == cfg.lidar_bev_shape
