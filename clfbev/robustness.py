@@ -182,14 +182,18 @@ def markdown(record: dict) -> str:
 
 
 def plot(record: dict, path: Path) -> None:
-    """NDS against fog severity (one line per model), and a bar chart of the other conditions."""
+    """NDS against fog severity (one line per model), and a bar chart of the other conditions
+    when there are any (a fog-only run gets the fog panel alone)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fog = {c: s for c, s in record["fog_severity"].items() if s is not None}
     other = [c for c in record["conditions"] if c not in fog]
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(13, 4.5), dpi=110, gridspec_kw={"width_ratios": [1, 1.6]})
+    if other:
+        fig, (a1, a2) = plt.subplots(1, 2, figsize=(13, 4.5), dpi=110, gridspec_kw={"width_ratios": [1, 1.6]})
+    else:
+        fig, a1 = plt.subplots(1, 1, figsize=(6, 4.5), dpi=110)
     for name, m in record["models"].items():
         pts = sorted((s, m["metrics"][c]["NDS"]) for c, s in fog.items())
         a1.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=f"{name} ({m['variant']})")
@@ -198,18 +202,18 @@ def plot(record: dict, path: Path) -> None:
     a1.set_title("NDS under fog (paired sets)")
     a1.grid(alpha=0.3)
     a1.legend(fontsize=8)
-    names = list(record["models"])
     if other:
-        width = 0.8 / max(1, len(names))
+        names = list(record["models"])
+        width = 0.8 / len(names)
         x = np.arange(len(other))
         for k, name in enumerate(names):
             a2.bar(x + k * width, [record["models"][name]["metrics"][c]["NDS"] for c in other], width, label=name)
         a2.set_xticks(x + width * (len(names) - 1) / 2)
         a2.set_xticklabels(other, rotation=25, ha="right", fontsize=8)
-    a2.set_ylabel("NDS")
-    a2.set_title("occlusion, corruptions and sensor failure")
-    a2.grid(alpha=0.3, axis="y")
-    a2.legend(fontsize=8)
+        a2.set_ylabel("NDS")
+        a2.set_title("occlusion, corruptions and sensor failure")
+        a2.grid(alpha=0.3, axis="y")
+        a2.legend(fontsize=8)
     fig.tight_layout()
     tmp = path.with_name(f".{path.stem}.tmp.png")
     fig.savefig(tmp)

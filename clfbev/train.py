@@ -229,14 +229,17 @@ class LossModule(nn.Module):
 
 # ---------------------------------------------------------------- bookkeeping
 
-def code_version() -> str:
-    """``git describe`` of the source tree (``-dirty`` if modified), else the package version."""
-    here = Path(__file__).resolve().parent
+def code_version(here: Path | None = None) -> str:
+    """``git describe`` of the source tree, ``-dirty`` when a tracked file of the package folder
+    ``here`` (default: this package) is modified: a changed doc or script elsewhere in the tree
+    does not change a run. Else the package version."""
+    here = Path(__file__).resolve().parent if here is None else here
     try:
-        out = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=here, capture_output=True,
-                             text=True, timeout=10)
-        if out.returncode == 0 and out.stdout.strip():
-            return out.stdout.strip()
+        out = subprocess.run(["git", "describe", "--always"], cwd=here, capture_output=True, text=True, timeout=10)
+        changed = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "."], cwd=here,
+                                 capture_output=True, text=True, timeout=10)
+        if out.returncode == 0 and out.stdout.strip() and changed.returncode == 0:
+            return out.stdout.strip() + ("-dirty" if changed.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
         pass
     from importlib.metadata import PackageNotFoundError, version

@@ -164,3 +164,21 @@ def test_pairing_allows_only_what_occluders_change(tmp_path):
         check_paired(clean, make("moved", moved), "v", "moved")
     with pytest.raises(DataError, match="3 against 2 records"):
         check_paired(clean, make("fewer", anns[:2]), "v", "fewer")
+
+
+def test_plot_of_fog_sets_only_has_the_fog_panel(tmp_path):
+    """With fog sets only, the picture is the fog panel alone (no empty bar chart beside it);
+    with another condition, the bar chart joins it."""
+    import cv2
+
+    from clfbev.robustness import plot
+
+    models = {name: {"variant": "lidar", "metrics": {"clean": {"NDS": 0.3}, "fog3": {"NDS": 0.2},
+                                                     "occlusion": {"NDS": 0.25}}} for name in ("a", "b")}
+    fog_only = {"fog_severity": {"clean": 0, "fog3": 3}, "conditions": ["clean", "fog3"], "models": models}
+    plot(fog_only, tmp_path / "fog.png")
+    both = {"fog_severity": {"clean": 0, "fog3": 3, "occlusion": None},
+            "conditions": ["clean", "fog3", "occlusion"], "models": models}
+    plot(both, tmp_path / "both.png")
+    w_fog, w_both = (cv2.imread(str(tmp_path / f)).shape[1] for f in ("fog.png", "both.png"))
+    assert w_fog == 660 and w_both == 1430      # 6 and 13 inches at 110 dpi

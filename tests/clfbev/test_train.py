@@ -285,3 +285,28 @@ def test_non_finite_loss_stops_and_keeps_the_checkpoint(tiny_dataset, micro, tmp
     ckpt = load_checkpoint(tmp_path / "run" / "last.pt")
     assert ckpt["step"] == 2
     assert all(torch.isfinite(v).all() for v in ckpt["model"].values() if v.is_floating_point())
+
+
+def test_code_version_is_dirty_only_for_the_package_files(tmp_path):
+    """A run's code version reads -dirty when the package's own tracked files are modified, not
+    when a doc or a script beside it is."""
+    from clfbev.train import code_version
+
+    def git(*args):
+        subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path, check=True,
+                       capture_output=True)
+
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "model.py").write_text("x = 1\n")
+    (tmp_path / "README.md").write_text("doc\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-q", "-m", "one")
+    clean = code_version(pkg)
+    assert len(clean) >= 7 and not clean.endswith("-dirty")
+    (tmp_path / "README.md").write_text("changed doc\n")
+    (tmp_path / "notes.txt").write_text("untracked\n")
+    assert code_version(pkg) == clean
+    (pkg / "model.py").write_text("x = 2\n")
+    assert code_version(pkg) == clean + "-dirty"
