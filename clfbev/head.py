@@ -30,6 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from clfbev.anchors import anchor_class_ids
+from clfbev.layers import conv_bn_relu
 from clfbev.ops.boxes import decode_boxes, limit_period, rotated_nms
 
 # Direction bins start at this heading: with 2 bins, bin 0 is [-pi/4, 3pi/4) and bin 1
@@ -111,8 +112,7 @@ class VelocityTower(nn.Module):
         layers: list[nn.Module] = []
         c = in_ch
         for d in self.DILATIONS:
-            layers += [nn.Conv2d(c, channels, 3, padding=d, dilation=d, bias=False),
-                       nn.BatchNorm2d(channels, eps=1e-3, momentum=0.01), nn.ReLU(inplace=True)]
+            layers += conv_bn_relu(c, channels, dilation=d)
             c = channels
         self.body = nn.Sequential(*layers)
         self.out = nn.Conv2d(channels, n_anchors * 2, 1)
@@ -174,7 +174,7 @@ class AnchorHead(nn.Module):
         """bev (B, in_ch, H, W), motion (B, motion_ch, H, W) or None -> HeadOutput on the same grid."""
         box = self.conv_box(bev)
         if self.velocity is not None:
-            tower_in = bev if motion is None else torch.cat([bev, motion.to(bev.dtype)], dim=1)
+            tower_in = bev if motion is None else torch.cat([bev, motion], dim=1)
             b, _, h, w = box.shape
             n_anchors = self.n_classes * self.n_rot
             vel = self.velocity(tower_in).view(b, n_anchors, 2, h, w)

@@ -19,14 +19,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from clfbev.layers import BN_EPS, BN_MOMENTUM
 from clfbev.ops.sparse_conv import SparseConv3d, SparseTensor, SubMConv3d, subm_rulebook
 from clfbev.ops.voxelize import grid_shape_of, voxelize
 from clfbev.sweep_bev import sweep_occupancy
 
 Triple = tuple[int, int, int]
-
-# BatchNorm settings of SECOND / spconv networks (small momentum: sparse batches are noisy).
-BN_EPS, BN_MOMENTUM = 1e-3, 0.01
 
 
 def conv_out_size(n: int, kernel: int, stride: int, padding: int) -> int:

@@ -37,19 +37,9 @@ from clfbev.depth import depth_loss, depth_targets
 from clfbev.fusion import BSM, MCM, ConvFuser
 from clfbev.assign import assign_targets, stack_targets
 from clfbev.head import AnchorHead, Detections, HeadOutput, decode
+from clfbev.layers import BN_EPS, BN_MOMENTUM, conv_bn_relu
 from clfbev.lidar_encoder import LidarEncoder
 from clfbev.losses import detection_loss
-
-# SECOND's BEV-backbone BatchNorm settings.
-BN_EPS, BN_MOMENTUM = 1e-3, 0.01
-
-
-def _conv_bn_relu(in_ch: int, out_ch: int, stride: int = 1) -> list[nn.Module]:
-    return [
-        nn.Conv2d(in_ch, out_ch, 3, stride=stride, padding=1, bias=False),  # BN's shift is the bias
-        nn.BatchNorm2d(out_ch, eps=BN_EPS, momentum=BN_MOMENTUM),
-        nn.ReLU(inplace=True),
-    ]
 
 
 class BEVBackbone(nn.Module):
@@ -75,9 +65,9 @@ class BEVBackbone(nn.Module):
         self.ups = nn.ModuleList()
         c = in_ch
         for i, out in enumerate(channels):
-            layers = _conv_bn_relu(c, out, stride=1 if i == 0 else 2)
+            layers = conv_bn_relu(c, out, stride=1 if i == 0 else 2)
             for _ in range(blocks - 1):
-                layers += _conv_bn_relu(out, out)
+                layers += conv_bn_relu(out, out)
             self.stages.append(nn.Sequential(*layers))
             s = 2**i
             up = nn.Conv2d(out, up_ch, 1, bias=False) if s == 1 else nn.ConvTranspose2d(out, up_ch, s, s, bias=False)
