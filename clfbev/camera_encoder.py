@@ -27,6 +27,8 @@ Conventions
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor, nn
 
@@ -165,6 +167,8 @@ class CameraEncoder(nn.Module):
     feature_stride : 8 (FPN over C3-C5) or 16 (FPN over C4-C5).
     pc_range : (xmin, ymin, zmin, xmax, ymax, zmax) of the voxel grid, lidar frame.
     bev_voxel : (dx, dy, dz) voxel size.
+    semantic_classes : when > 0, a 1x1 conv on the FPN features also predicts that many class
+        logits per feature cell, for the perspective supervision (:mod:`clfbev.perspective`).
     """
 
     def __init__(
@@ -178,6 +182,8 @@ class CameraEncoder(nn.Module):
         feature_stride: int,
         pc_range: tuple[float, ...],
         bev_voxel: tuple[float, float, float],
+        semantic_classes: int = 0,
+        prior_prob: float = 0.01,
     ) -> None:
         super().__init__()
         if feature_stride not in (8, 16):
@@ -200,6 +206,11 @@ class CameraEncoder(nn.Module):
         self.neck = FPN(list(self.backbone.out_channels[self._levels]), fpn_ch)
         # One 1x1 conv predicts D depth logits and C context channels per cell (LSS).
         self.depth_net = nn.Conv2d(fpn_ch, self.num_depth_bins + context_ch, 1)
+        self.semantic_head: nn.Conv2d | None = None
+        if semantic_classes > 0:
+            self.semantic_head = nn.Conv2d(fpn_ch, semantic_classes, 1)
+            # The focal-loss prior (as the anchor head): every class starts at probability prior_prob.
+            nn.init.constant_(self.semantic_head.bias, -math.log((1 - prior_prob) / prior_prob))
         self.to(memory_format=torch.channels_last)
 
     @property
@@ -212,10 +223,12 @@ class CameraEncoder(nn.Module):
         """(ny, nx) of the camera BEV."""
         return self.grid_shape[1], self.grid_shape[2]
 
-    def image_features(self, images: Tensor) -> tuple[Tensor, Tensor]:
-        """images (B, N, 3, H, W) -> depth_probs (B, N, D, h, w), context (B, N, C, h, w).
+    def image_features(self, images: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """images (B, N, 3, H, W) -> depth_probs (B, N, D, h, w), context (B, N, C, h, w) and the
+        class logits (B, N, semantic_classes, h, w), or None without a semantic head.
 
-        Exposed separately so a caller can supervise the depth distribution (BEVDepth-style).
+        Exposed separately so a caller can supervise the depth distribution (BEVDepth-style) and
+        the classes (:mod:`clfbev.perspective`).
         """
         B, N, _, H, W = images.shape
         if (H, W) != self.image_size:
@@ -223,12 +236,16 @@ class CameraEncoder(nn.Module):
         # Channels-last: the CPU's oneDNN convolutions run about 1.35x faster in it (forward +
         # backward of the tiny ResNet, measured), and cuDNN prefers it under AMP.
         feats = self.backbone(images.flatten(0, 1).contiguous(memory_format=torch.channels_last))
-        x = self.depth_net(self.neck(feats[self._levels])).contiguous()
+        fpn = self.neck(feats[self._levels])
+        x = self.depth_net(fpn).contiguous()
         h, w = H // self.feature_stride, W // self.feature_stride
         D = self.num_depth_bins
         depth = x[:, :D].softmax(dim=1).view(B, N, D, h, w)
         context = x[:, D:].reshape(B, N, self.context_ch, h, w)
-        return depth, context
+        semantics = None
+        if self.semantic_head is not None:
+            semantics = self.semantic_head(fpn).contiguous().view(B, N, -1, h, w)
+        return depth, context, semantics
 
     def forward(
         self,
@@ -246,8 +263,9 @@ class CameraEncoder(nn.Module):
         intrinsics: Tensor,
         T_lidar_from_cam: Tensor,
         img_aug: Tensor | None = None,
-    ) -> tuple[Tensor, Tensor]:
-        """Camera BEV and the depth distribution it was lifted with (for the depth loss).
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
+        """Camera BEV, the depth distribution it was lifted with (for the depth loss) and the
+        class logits of the image features (for the perspective loss).
 
         Parameters
         ----------
@@ -260,9 +278,10 @@ class CameraEncoder(nn.Module):
         -------
         bev : (B, out_channels, ny, nx) camera BEV in the lidar frame.
         depth : (B, N, D, h, w) depth distribution of every feature cell.
+        semantics : (B, N, semantic_classes, h, w) class logits, or None without a semantic head.
         """
-        depth, context = self.image_features(images)
+        depth, context, semantics = self.image_features(images)
         geom = lift_geometry(
             intrinsics, T_lidar_from_cam, img_aug, self.image_size, self.feature_stride, self.depth_bins
         )
-        return compress_z(splat(depth, context, geom, self.pc_range, self.bev_voxel)), depth
+        return compress_z(splat(depth, context, geom, self.pc_range, self.bev_voxel)), depth, semantics

@@ -25,6 +25,67 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
+def nearest_lidar_points(
+    points: list[Tensor],
+    intrinsics: Tensor,
+    T_lidar_from_cam: Tensor,
+    img_aug: Tensor,
+    image_size: tuple[int, int],
+    feature_stride: int,
+    depth_bins: tuple[float, float, float],
+    ignore: list[Tensor | None] | None = None,
+) -> tuple[Tensor, Tensor]:
+    """The nearest key-frame lidar point of every camera feature cell (steps 1 and 2 above).
+
+    Parameters
+    ----------
+    points : B tensors (n_i, >= 5) x, y, z, intensity, time lag; key-frame lidar frame.
+    intrinsics : (B, N, 3, 3) K of the original images.
+    T_lidar_from_cam : (B, N, 4, 4) camera -> lidar.
+    img_aug : (B, N, 3, 3) original -> network pixels.
+    image_size : (H, W) of the network images; feature map (H / s, W / s).
+    feature_stride : s.
+    depth_bins : (d_min, d_max, d_step) of camera z; points outside the bins are left out.
+    ignore : optional B masks (n_i,) of points to leave out (pasted objects), or None entries.
+
+    Returns
+    -------
+    depth : (B, N, H / s, W / s) float64 camera z of the nearest point, inf where none.
+    index : (B, N, H / s, W / s) int64 row of that point in ``points[b]``, -1 where none (of
+        equally near points, the last row).
+    """
+    B, N = intrinsics.shape[:2]
+    H, W = image_size
+    h, w = H // feature_stride, W // feature_stride
+    d_min, d_max, d_step = (float(v) for v in depth_bins)
+    z_max = d_min + int(round((d_max - d_min) / d_step)) * d_step
+    device = intrinsics.device
+    # P = A K [R | t]_cam_from_lidar, per camera; float64 keeps pixels exact far from the centre.
+    T_cam_from_lidar = torch.linalg.inv(T_lidar_from_cam.double())
+    P = img_aug.double() @ intrinsics.double() @ T_cam_from_lidar[..., :3, :]  # (B, N, 3, 4)
+    depth = torch.full((B, N * h * w), float("inf"), dtype=torch.float64, device=device)
+    index = torch.full((B, N * h * w), -1, dtype=torch.long, device=device)
+    for b in range(B):                      # a loop over the batch; each sample is vectorised
+        keep = points[b][:, 4] == 0
+        if ignore is not None and ignore[b] is not None:
+            keep &= ~ignore[b]
+        rows = torch.nonzero(keep).squeeze(1)
+        xyz1 = F.pad(points[b][rows, :3].double(), (0, 1), value=1.0)   # (n, 4)
+        uvz = torch.einsum("nij,pj->npi", P[b], xyz1)                   # (N, n, 3)
+        z = uvz[..., 2]
+        u, v = uvz[..., 0] / z, uvz[..., 1] / z
+        cols, rows_px = torch.floor(u / feature_stride).long(), torch.floor(v / feature_stride).long()
+        ok = (z > d_min) & (z < z_max) & (cols >= 0) & (cols < w) & (rows_px >= 0) & (rows_px < h)
+        cam = torch.arange(N, device=device)[:, None].expand_as(z)
+        cell, z_ok = ((cam * h + rows_px) * w + cols)[ok], z[ok]
+        depth[b].scatter_reduce_(0, cell, z_ok, reduce="amin")
+        # The row of the nearest point: a max over the points at the cell's minimum (deterministic).
+        nearest = z_ok == depth[b][cell]
+        point_row = rows[None, :].expand_as(z)[ok]
+        index[b].scatter_reduce_(0, cell[nearest], point_row[nearest], reduce="amax")
+    return depth.view(B, N, h, w), index.view(B, N, h, w)
+
+
 def depth_targets(
     points: list[Tensor],
     intrinsics: Tensor,
@@ -35,48 +96,23 @@ def depth_targets(
     depth_bins: tuple[float, float, float],
     ignore: list[Tensor | None] | None = None,
 ) -> Tensor:
-    """Nearest-lidar depth bin of every camera feature cell.
-
-    Parameters
-    ----------
-    points : B tensors (n_i, >= 5) x, y, z, intensity, time lag; key-frame lidar frame.
-    intrinsics : (B, N, 3, 3) K of the original images.
-    T_lidar_from_cam : (B, N, 4, 4) camera -> lidar.
-    img_aug : (B, N, 3, 3) original -> network pixels.
-    image_size : (H, W) of the network images; feature map (H / s, W / s).
-    feature_stride : s.
-    depth_bins : (d_min, d_max, d_step) of camera z.
-    ignore : optional B masks (n_i,) of points to leave out (pasted objects), or None entries.
+    """Nearest-lidar depth bin of every camera feature cell; the parameters are those of
+    :func:`nearest_lidar_points`.
 
     Returns
     -------
     (B, N, H / s, W / s) int64 bin index, -1 where the cell has no target.
     """
-    B, N = intrinsics.shape[:2]
-    H, W = image_size
-    h, w = H // feature_stride, W // feature_stride
-    d_min, d_max, d_step = (float(v) for v in depth_bins)
-    n_bins = int(round((d_max - d_min) / d_step))
-    device = intrinsics.device
-    # P = A K [R | t]_cam_from_lidar, per camera; float64 keeps pixels exact far from the centre.
-    T_cam_from_lidar = torch.linalg.inv(T_lidar_from_cam.double())
-    P = img_aug.double() @ intrinsics.double() @ T_cam_from_lidar[..., :3, :]  # (B, N, 3, 4)
-    depth = torch.full((B, N * h * w), float("inf"), dtype=torch.float64, device=device)
-    for b in range(B):                      # a loop over the batch; each sample is vectorised
-        keep = points[b][:, 4] == 0
-        if ignore is not None and ignore[b] is not None:
-            keep &= ~ignore[b]
-        xyz1 = F.pad(points[b][keep, :3].double(), (0, 1), value=1.0)  # (n, 4)
-        uvz = torch.einsum("nij,pj->npi", P[b], xyz1)                   # (N, n, 3)
-        z = uvz[..., 2]
-        u, v = uvz[..., 0] / z, uvz[..., 1] / z
-        cols, rows = torch.floor(u / feature_stride).long(), torch.floor(v / feature_stride).long()
-        ok = (z > d_min) & (z < d_min + n_bins * d_step) & (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
-        cam = torch.arange(N, device=device)[:, None].expand_as(z)
-        cell = (cam * h + rows) * w + cols
-        depth[b].scatter_reduce_(0, cell[ok], z[ok], reduce="amin")
+    depth, _ = nearest_lidar_points(points, intrinsics, T_lidar_from_cam, img_aug, image_size,
+                                    feature_stride, depth_bins, ignore)
+    return bins_of(depth, depth_bins)
+
+
+def bins_of(depth: Tensor, depth_bins: tuple[float, float, float]) -> Tensor:
+    """Depth bin of camera z (any shape, inf = none) -> int64, -1 where inf."""
+    d_min, _, d_step = (float(v) for v in depth_bins)
     bins = torch.floor((depth - d_min) / d_step)
-    return torch.where(torch.isfinite(depth), bins, -1.0).long().view(B, N, h, w)
+    return torch.where(torch.isfinite(depth), bins, -1.0).long()
 
 
 def depth_loss(depth_probs: Tensor, targets: Tensor) -> Tensor:

@@ -25,6 +25,8 @@ class LossWeights:
     cls, reg, dir : l_cls, l_reg, l_dir.
     depth : weight of the camera's lidar-supervised depth loss (:mod:`clfbev.depth`; BEVDepth
         uses 3.0); 0 turns the supervision off (the ablation). Unused by the ``lidar`` variant.
+    semantic : weight of the camera's perspective class loss (:mod:`clfbev.perspective`); 0 (the
+        default) builds no perspective head. Unused by the ``lidar`` variant.
     code_weights : per residual ``(dx, dy, dz, dl, dw, dh, dtheta, vx, vy)``; velocity is
         down-weighted (0.2) because it is noisy (from a few sweeps) and would otherwise pull
         the shared features away from localisation early in training.
@@ -36,6 +38,7 @@ class LossWeights:
     reg: float = 2.0
     dir: float = 0.2
     depth: float = 3.0
+    semantic: float = 0.0
     code_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.2, 0.2)
     focal_alpha: float = 0.25
     focal_gamma: float = 2.0

@@ -26,6 +26,8 @@ y and columns along x over ``cfg.pc_range``. Predictions are boxes in that frame
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor, nn
 
@@ -33,13 +35,29 @@ from clfbev.anchors import make_anchors, match_thresholds
 from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import VARIANTS, ModelConfig
 from clfbev.data import Batch
-from clfbev.depth import depth_loss, depth_targets
+from clfbev.depth import bins_of, depth_loss, nearest_lidar_points
 from clfbev.fusion import BSM, MCM, ConvFuser
 from clfbev.assign import assign_targets, stack_targets
 from clfbev.head import AnchorHead, Detections, HeadOutput, decode
 from clfbev.layers import BN_EPS, BN_MOMENTUM, conv_bn_relu
 from clfbev.lidar_encoder import LidarEncoder
 from clfbev.losses import detection_loss
+from clfbev.perspective import cell_classes, semantic_loss
+
+
+class Encoded(NamedTuple):
+    """What :meth:`CLFusionBEV._encode` gives the backbone and the losses.
+
+    bev : (B, cfg.bev_channels_of(variant), ny, nx) the backbone's input, lidar frame.
+    depth : (B, N, D, h, w) the camera's depth distribution, None without a camera.
+    semantics : (B, N, n_classes, h, w) the perspective head's logits, None without one.
+    motion : (B, motion_ch, ny, nx) the velocity tower's sweep bands, None without a tower.
+    """
+
+    bev: Tensor
+    depth: Tensor | None
+    semantics: Tensor | None
+    motion: Tensor | None
 
 
 class BEVBackbone(nn.Module):
@@ -116,6 +134,7 @@ class CLFusionBEV(nn.Module):
             self.camera_encoder = CameraEncoder(
                 cfg.cam_depth, cfg.cam_width, cfg.fpn_ch, cfg.depth_bins, cfg.context_ch,
                 cfg.image_size, cfg.feature_stride, cfg.pc_range, cfg.cam_bev_voxel,
+                semantic_classes=len(cfg.class_names) if cfg.loss.semantic > 0 else 0, prior_prob=cfg.prior_prob,
             )
 
         # Fusion.
@@ -147,24 +166,23 @@ class CLFusionBEV(nn.Module):
 
     def bev_features(self, batch: Batch) -> Tensor:
         """The BEV map the backbone sees, (B, cfg.bev_channels_of(variant), ny, nx), lidar frame."""
-        return self._encode(batch)[0]
+        return self._encode(batch).bev
 
-    def _encode(self, batch: Batch) -> tuple[Tensor, Tensor | None, Tensor | None]:
-        """The backbone's BEV map; the camera's depth distribution (B, N, D, h, w), or None for
-        the lidar variant; the velocity tower's motion channels (B, motion_ch, ny, nx), or None."""
-        lidar_bev = cam_bev = depth = motion = None
+    def _encode(self, batch: Batch) -> Encoded:
+        """The BEV map and what the losses and the velocity tower read beside it (:class:`Encoded`)."""
+        lidar_bev = cam_bev = depth = motion = semantics = None
         if self.lidar_encoder is not None:
             lidar_bev = self.lidar_encoder(batch.points)                      # (B, Cl, ny, nx)
             if self.motion_ch:
                 motion = lidar_bev[:, -self.motion_ch:]
         if self.camera_encoder is not None:
-            cam_bev, depth = self.camera_encoder.lift_splat(batch.images, batch.intrinsics,
-                                                            batch.T_lidar_from_cam, batch.img_aug)
+            cam_bev, depth, semantics = self.camera_encoder.lift_splat(batch.images, batch.intrinsics,
+                                                                       batch.T_lidar_from_cam, batch.img_aug)
         if self.variant == "lidar":
-            return lidar_bev, None, motion
+            return Encoded(lidar_bev, None, None, motion)
         if self.variant == "camera":
-            return cam_bev, depth, None
-        return self.fuse(lidar_bev, cam_bev), depth, motion
+            return Encoded(cam_bev, depth, semantics, None)
+        return Encoded(self.fuse(lidar_bev, cam_bev), depth, semantics, motion)
 
     def fuse(self, lidar_bev: Tensor, cam_bev: Tensor) -> Tensor:
         """MCM -> ConvFuser -> BSM, as the variant has them: (B, Cl, ny, nx), (B, Cc, ny, nx) ->
@@ -181,37 +199,51 @@ class CLFusionBEV(nn.Module):
     def forward(self, batch: Batch) -> HeadOutput:
         """Batch -> head maps on the BEV grid: cls (B, A, ny, nx), box (B, A * code_size, ny, nx),
         dir (B, A * n_dir_bins, ny, nx), with A = n_classes * n_rotations."""
-        bev, _, motion = self._encode(batch)
-        return self.head(self.backbone(bev), motion)
+        enc = self._encode(batch)
+        return self.head(self.backbone(enc.bev), enc.motion)
 
     # ------------------------------------------------------------------ training and inference
 
     def loss(self, batch: Batch) -> dict[str, Tensor]:
         """Detection loss (paper eq. 9) of a batch, see :func:`clfbev.losses.detection_loss`, plus
         ``cfg.loss.depth`` times the camera's depth loss (:mod:`clfbev.depth`) for the variants
-        with a camera; ``loss_depth`` is reported whenever there is a camera.
+        with a camera; ``loss_depth`` is reported whenever there is a camera. With a perspective
+        head (``cfg.loss.semantic > 0``), plus that weight times ``loss_semantic``
+        (:mod:`clfbev.perspective`).
 
         ``batch.gt_boxes`` are (M_i, 9) ``x, y, z, l, w, h, yaw, vx, vy`` in the lidar frame and
         ``batch.gt_labels`` (M_i,) indices into ``cfg.class_names``.
         """
         cfg = self.cfg
-        bev, depth, motion = self._encode(batch)
-        out = self.head(self.backbone(bev), motion)
+        enc = self._encode(batch)
+        out = self.head(self.backbone(enc.bev), enc.motion)
         targets = stack_targets([
             assign_targets(self.anchors, boxes[:, : cfg.code_size], labels, self.thresholds,
                            n_dir_bins=cfg.n_dir_bins)
             for boxes, labels in zip(batch.gt_boxes, batch.gt_labels)
         ])
         losses = detection_loss(out, targets, cfg.loss)
-        if depth is not None:
-            with torch.no_grad():
-                target_bins = depth_targets(batch.points, batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug,
-                                            cfg.image_size, cfg.feature_stride, cfg.depth_bins,
-                                            batch.pasted or None)
-            losses["loss_depth"] = depth_loss(depth, target_bins)
-            if cfg.loss.depth > 0:
-                losses["loss"] = losses["loss"] + cfg.loss.depth * losses["loss_depth"]
+        if enc.depth is not None:
+            losses.update(self._camera_losses(batch, enc))
+            losses["loss"] = losses["loss"] + cfg.loss.depth * losses["loss_depth"]
+            if enc.semantics is not None:
+                losses["loss"] = losses["loss"] + cfg.loss.semantic * losses["loss_semantic"]
         return losses
+
+    def _camera_losses(self, batch: Batch, enc: Encoded) -> dict[str, Tensor]:
+        """``loss_depth`` and, with a perspective head, ``loss_semantic``, unweighted."""
+        cfg = self.cfg
+        cams = (batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug, cfg.image_size, cfg.feature_stride,
+                cfg.depth_bins)
+        out = {}
+        with torch.no_grad():
+            depth, nearest = nearest_lidar_points(batch.points, *cams, batch.pasted or None)
+        out["loss_depth"] = depth_loss(enc.depth, bins_of(depth, cfg.depth_bins))
+        if enc.semantics is not None:
+            with torch.no_grad():
+                classes = cell_classes(nearest, batch.points, batch.gt_boxes, batch.gt_labels, len(cfg.class_names))
+            out["loss_semantic"] = semantic_loss(enc.semantics, classes, cfg.loss.focal_alpha, cfg.loss.focal_gamma)
+        return out
 
     @torch.no_grad()
     def predict(

@@ -335,7 +335,7 @@ def test_camera_encoder_forward_backward():
 def test_camera_encoder_stride16_and_no_aug():
     enc = tiny_encoder(feature_stride=16)
     K, T, _ = rig_inputs(2)
-    depth, context = enc.image_features(torch.randn(2, 6, 3, 64, 176))
+    depth, context, _ = enc.image_features(torch.randn(2, 6, 3, 64, 176))
     assert tuple(depth.shape) == (2, 6, 4, 4, 11) and tuple(context.shape) == (2, 6, 8, 4, 11)
     torch.testing.assert_close(depth.sum(dim=2), torch.ones(2, 6, 4, 11))
     bev = enc(torch.randn(2, 6, 3, 64, 176), K, T)

@@ -87,7 +87,7 @@ def test_depth_loss_is_bevdepths_bce_and_decreases_in_training():
     opt = torch.optim.AdamW(enc.parameters(), lr=3e-3)
     losses = []
     for _ in range(25):
-        depth, _ = enc.image_features(images)
+        depth, _, _ = enc.image_features(images)
         loss = depth_loss(depth, targets)
         opt.zero_grad()
         loss.backward()
