@@ -89,6 +89,22 @@ def test_query_chunk_same_result():
         torch.testing.assert_close(a_chunk, a_full, atol=ATOL, rtol=0)
 
 
+@pytest.mark.parametrize("mode", ["exact", "window", "pooled"])
+def test_the_fused_kernel_gives_the_explicit_output_and_gradient(mode):
+    """Without weights the attention runs torch's fused kernel; with them, matmul + softmax.
+    Same output and input gradients, padded windows (7 x 10 in windows of 4) included."""
+    q, k, v = (t.requires_grad_() for t in rand_qkv(B=2, H=7, W=10, C=8, Cv=6))
+    attn = BEVAttention(2, mode, window=4, pool_stride=3)
+    fused = attn(q, k, v)
+    explicit, _ = attn(q, k, v, return_attn=True)
+    torch.testing.assert_close(fused, explicit, atol=ATOL, rtol=0)
+    g = torch.randn_like(fused)
+    grads_fused = torch.autograd.grad(fused, (q, k, v), g)
+    grads_explicit = torch.autograd.grad(explicit, (q, k, v), g)
+    for a, b in zip(grads_fused, grads_explicit):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+
+
 # ----------------------------------------------------------------------------- window
 
 
