@@ -289,6 +289,19 @@ def test_splat_conserves_mass_and_matches_reference():
         torch.testing.assert_close(bev[:, 5 * iz:5 * iz + 5], vox[:, :, iz])
     torch.testing.assert_close(bev.sum(), vox.sum())
 
+    # Gradients: those of the outer product scatter-added into the voxels.
+    depth.requires_grad_(), context.requires_grad_()
+    g_out = torch.randn(B, 5, nz, ny, nx)
+    grads = torch.autograd.grad(splat(depth, context, geom, pc_range, voxel), (depth, context), g_out)
+    flat = torch.from_numpy(((bb * nz + idx[..., 2]) * ny + idx[..., 1]) * nx + idx[..., 0])
+    flat = torch.where(torch.from_numpy(inside), flat, B * nz * ny * nx)   # a dump row
+    outer = (depth[:, :, :, None] * context[:, :, None]).permute(0, 1, 2, 4, 5, 3).reshape(B, -1, 5)
+    ref_vox = torch.zeros(B * nz * ny * nx + 1, 5).index_add(0, flat.reshape(-1), outer.reshape(-1, 5))
+    ref_vox = ref_vox[:-1].view(B, nz, ny, nx, 5).permute(0, 4, 1, 2, 3)
+    ref_grads = torch.autograd.grad(ref_vox, (depth, context), g_out)
+    for got, want in zip(grads, ref_grads):
+        torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
+
 
 def test_depth_bins_and_bad_arguments():
     torch.testing.assert_close(depth_bin_centres((2.0, 4.0, 0.5)), torch.tensor([2.25, 2.75, 3.25, 3.75]))
