@@ -72,7 +72,7 @@ def run_vfe(vfe, pts, vox):
 @pytest.mark.parametrize("norm", ["batch", "layer"])
 def test_vfe_invariant_to_point_order(norm):
     """Eval mode (BatchNorm by its running statistics): shuffling the input points gives the
-    same voxel features (the voxels come in another order; compare them by coordinate)."""
+    same voxel features (the voxels come in the same order, their points in another)."""
     pts, vox, pc_range, voxel = dense_voxels()
     torch.manual_seed(0)
     vfe = VFE(5, 32, voxel, pc_range, norm=norm).double().eval()
@@ -80,7 +80,7 @@ def test_vfe_invariant_to_point_order(norm):
     ref = dict(zip(map(tuple, vox.coords.tolist()), run_vfe(vfe, pts, vox)))
     perm = torch.randperm(len(pts), generator=torch.Generator().manual_seed(3))
     vox2 = voxelize(pts[perm], torch.zeros(len(pts), dtype=torch.long), pc_range, voxel, 1000)
-    assert not torch.equal(vox2.coords, vox.coords)
+    assert torch.equal(vox2.coords, vox.coords) and not torch.equal(perm[vox2.point_index], vox.point_index)
     out = run_vfe(vfe, pts[perm], vox2)
     for c, f in zip(map(tuple, vox2.coords.tolist()), out):
         torch.testing.assert_close(f, ref[c], rtol=0, atol=1e-12)
@@ -94,8 +94,9 @@ def test_vfe_single_point_voxel_is_that_points_mlp_output(norm):
     p = torch.tensor([[0.3, -1.1, 0.2, 0.7, 0.25], [-1.9, 2.9, -0.9, 0.1, 0.0]], dtype=torch.float64)
     vox = voxelize(p, torch.zeros(2, dtype=torch.long), pc_range, voxel, 10)
     assert vox.num_points.tolist() == [1, 1]
-    # Voxel (ix, iy, iz) of point 0 = floor((0.3+2)/0.5), floor((-1.1+3)/0.75), floor((0.2+1)/0.5)
-    assert vox.coords[0].tolist() == [0, 2, 2, 4]
+    # Voxel (ix, iy, iz) of point 0 = floor((0.3+2)/0.5), floor((-1.1+3)/0.75), floor((0.2+1)/0.5);
+    # point 1's voxel (0, 7, 0) has the smaller key, so it is row 0.
+    assert vox.point_index.tolist() == [1, 0] and vox.coords[1].tolist() == [0, 2, 2, 4]
     centre = torch.tensor([-2.0 + 4.5 * 0.5, -3.0 + 2.5 * 0.75, -1.0 + 2.5 * 0.5], dtype=torch.float64)
 
     torch.manual_seed(0)
@@ -115,7 +116,7 @@ def test_vfe_single_point_voxel_is_that_points_mlp_output(norm):
         h = (h - h.mean()) / torch.sqrt(h.var(unbiased=False) + nrm.eps) * nrm.weight + nrm.bias
     expected = torch.relu(h)
     assert (expected > 0).any()
-    torch.testing.assert_close(out[0], expected, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out[1], expected, rtol=0, atol=1e-12)
 
 
 def test_vfe_is_max_over_all_points_of_the_point_mlp():
