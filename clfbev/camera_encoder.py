@@ -178,6 +178,11 @@ class CameraEncoder(nn.Module):
     bev_voxel : (dx, dy, dz) voxel size.
     semantic_classes : when > 0, a 1x1 conv on the FPN features also predicts that many class
         logits per feature cell, for the perspective supervision (:mod:`clfbev.perspective`).
+    semantic_lift : lift the class probabilities (sigmoid of those logits) with the context, as
+        ``semantic_classes`` more channels per z slice, so that the camera BEV says what stands
+        where and not only that something does (SA-BEV, Zhang et al. 2023, lifts image
+        semantics in the same spirit). Needs ``semantic_classes > 0``.
+    prior_prob : the initial class probability of the semantic head (the focal-loss prior).
     """
 
     def __init__(
@@ -192,9 +197,13 @@ class CameraEncoder(nn.Module):
         pc_range: tuple[float, ...],
         bev_voxel: tuple[float, float, float],
         semantic_classes: int = 0,
+        semantic_lift: bool = False,
         prior_prob: float = 0.01,
     ) -> None:
         super().__init__()
+        if semantic_lift and semantic_classes < 1:
+            raise ValueError("semantic_lift needs semantic_classes > 0")
+        self.semantic_lift = semantic_lift
         if feature_stride not in (8, 16):
             raise ValueError(f"feature_stride must be 8 or 16, got {feature_stride}")
         self.depth_bins = tuple(float(v) for v in depth_bins)
@@ -205,6 +214,7 @@ class CameraEncoder(nn.Module):
         self.grid_shape = grid_shape_of(self.pc_range, self.bev_voxel)      # (nz, ny, nx)
         self.num_depth_bins = len(depth_bin_centres(self.depth_bins))
         self.context_ch = context_ch
+        self.lifted_ch = context_ch + (semantic_classes if semantic_lift else 0)
         H, W = self.image_size
         if H % feature_stride or W % feature_stride:
             raise ValueError(f"image_size {image_size} must be a multiple of feature_stride {feature_stride}")
@@ -224,8 +234,9 @@ class CameraEncoder(nn.Module):
 
     @property
     def out_channels(self) -> int:
-        """Channels of the camera BEV: context_ch per z slice."""
-        return self.context_ch * self.grid_shape[0]
+        """Channels of the camera BEV: the lifted channels (the context, and the class
+        probabilities with ``semantic_lift``) per z slice."""
+        return self.lifted_ch * self.grid_shape[0]
 
     @property
     def bev_shape(self) -> tuple[int, int]:
@@ -290,6 +301,8 @@ class CameraEncoder(nn.Module):
         semantics : (B, N, semantic_classes, h, w) class logits, or None without a semantic head.
         """
         depth, context, semantics = self.image_features(images)
+        if self.semantic_lift:
+            context = torch.cat([context, semantics.sigmoid()], dim=2)           # (B, N, C + n_cls, h, w)
         geom = lift_geometry(
             intrinsics, T_lidar_from_cam, img_aug, self.image_size, self.feature_stride, self.depth_bins
         )

@@ -50,7 +50,9 @@ class ModelConfig:
     log2(stride) downsamplings also halve x and y), ``sparse_blocks``, ``sweep_bands`` (lag
     bands whose point counts per BEV cell join the lidar BEV, :mod:`clfbev.sweep_bev`; 0: none).
     Camera: ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``, ``context_ch``, ``depth_bins``
-    (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``.
+    (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``,
+    ``cam_semantic_lift`` (lift the perspective head's class probabilities with the context, so
+    the camera BEV carries them; needs ``loss.semantic > 0``, see :mod:`clfbev.perspective`).
     Fusion: ``fusion_dim`` (ConvFuser / MCM / BSM channels), ``attn_heads``, ``attn_mode``
     (exact | window | pooled), ``attn_window``, ``attn_pool_stride``, ``attn_query_chunk``,
     ``attn_ffn_ratio``.
@@ -82,6 +84,7 @@ class ModelConfig:
     depth_bins: tuple[float, float, float] = (1.0, 52.0, 1.0)
     feature_stride: int = 8
     cam_z_slabs: int = 1
+    cam_semantic_lift: bool = False
     # fusion
     fusion_dim: int = 64
     attn_heads: int = 4
@@ -119,6 +122,8 @@ class ModelConfig:
             raise ValueError(f"fusion_dim {self.fusion_dim} must be divisible by attn_heads {self.attn_heads} and 4")
         if self.feature_stride not in (8, 16) or any(s % self.feature_stride for s in self.image_size):
             raise ValueError(f"image_size {self.image_size} must be a multiple of feature_stride (8 or 16)")
+        if self.cam_semantic_lift and not self.loss.semantic > 0:
+            raise ValueError("cam_semantic_lift needs the perspective head: set loss.semantic > 0")
         if len(self.loss.code_weights) < self.code_size:
             raise ValueError(f"loss.code_weights needs {self.code_size} values")
         if self.cam_bev_shape != self.lidar_bev_shape:
@@ -172,8 +177,10 @@ class ModelConfig:
 
     @property
     def cam_bev_channels(self) -> int:
-        """Camera BEV channels: context_ch per z slab (CameraEncoder.out_channels)."""
-        return self.context_ch * grid_shape_of(self.pc_range, self.cam_bev_voxel)[0]
+        """Camera BEV channels: the lifted channels (context_ch, plus one per class with
+        cam_semantic_lift) per z slab (CameraEncoder.out_channels)."""
+        lifted = self.context_ch + (len(self.class_names) if self.cam_semantic_lift else 0)
+        return lifted * grid_shape_of(self.pc_range, self.cam_bev_voxel)[0]
 
     @property
     def fused_channels(self) -> int:

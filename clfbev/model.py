@@ -134,7 +134,8 @@ class CLFusionBEV(nn.Module):
             self.camera_encoder = CameraEncoder(
                 cfg.cam_depth, cfg.cam_width, cfg.fpn_ch, cfg.depth_bins, cfg.context_ch,
                 cfg.image_size, cfg.feature_stride, cfg.pc_range, cfg.cam_bev_voxel,
-                semantic_classes=len(cfg.class_names) if cfg.loss.semantic > 0 else 0, prior_prob=cfg.prior_prob,
+                semantic_classes=len(cfg.class_names) if cfg.loss.semantic > 0 else 0,
+                semantic_lift=cfg.cam_semantic_lift, prior_prob=cfg.prior_prob,
             )
 
         # Fusion.
@@ -225,7 +226,8 @@ class CLFusionBEV(nn.Module):
         losses = detection_loss(out, targets, cfg.loss)
         if enc.depth is not None:
             losses.update(self._camera_losses(batch, enc))
-            losses["loss"] = losses["loss"] + cfg.loss.depth * losses["loss_depth"]
+            if cfg.loss.depth > 0:
+                losses["loss"] = losses["loss"] + cfg.loss.depth * losses["loss_depth"]
             if enc.semantics is not None:
                 losses["loss"] = losses["loss"] + cfg.loss.semantic * losses["loss_semantic"]
         return losses
