@@ -12,12 +12,14 @@ only: it runs in a second and needs no model.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
 from pathlib import Path
 
 from clfbev import atomic
+from clfbev.config import ModelConfig
 
 VERSION = "v1.0-sim"
 # The devkit's five TP errors (nuscenes.eval.detection.constants.TP_METRICS) and their columns.
@@ -119,12 +121,20 @@ def mean_half_range(values: list[float]) -> tuple[float, float]:
     return sum(values) / len(values), (max(values) - min(values)) / 2
 
 
+def with_defaults(config: dict) -> dict:
+    """A run's model config with the fields it predates at their defaults (the loss weights
+    too). A field is added with the default that keeps the earlier behaviour, which is also
+    what loading such a checkpoint fills in, so a run recorded before the field ran with it."""
+    defaults = json.loads(json.dumps(dataclasses.asdict(ModelConfig())))
+    return {**defaults, **config, "loss": {**defaults["loss"], **config.get("loss", {})}}
+
+
 def recipe_of(info: dict) -> dict:
     """The settings of a run that must agree across the table: all but the seed, the bookkeeping
     and, when --max-steps sets the length, the unused epoch count."""
     unused = ("seed", *BOOKKEEPING, *(("epochs",) if info["train"].get("max_steps") else ()))
     train = {k: v for k, v in info["train"].items() if k not in unused}
-    return {"config_name": config_name(info.get("argv", [])), "config": info["config"], "train": train}
+    return {"config_name": config_name(info.get("argv", [])), "config": with_defaults(info["config"]), "train": train}
 
 
 def values_by_variant(started: list[dict], key: str) -> dict:

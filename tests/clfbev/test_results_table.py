@@ -73,12 +73,12 @@ def bench(tmp_path) -> Path:
 
 
 def add_run(out: Path, name: str, metrics: dict | None = None, parts=((0, 10, 60),), eval_s: int | None = 30,
-            train: dict | None = None, code: str = "abc1234") -> Path:
+            train: dict | None = None, code: str = "abc1234", config: dict | None = None) -> Path:
     run = out / name
     run.mkdir(parents=True)
     variant, _, seed = name.rpartition("_s")
     (run / "run.json").write_text(json.dumps({
-        "config": {"vfe_ch": 32, "image_size": [128, 352]}, "variant": variant,
+        "config": {"vfe_ch": 32, "image_size": [128, 352], **(config or {})}, "variant": variant,
         "train": {**TRAIN, "seed": int(seed), **(train or {})}, "world_size": 1, "code_version": code,
         "argv": ["/somewhere/clfbev", "train", "--config", "tiny", "--variant", variant], "resumed_at_step": 0}))
     lines = [json.dumps({"stage": "train", "from_step": a, "to_step": b, "seconds": s, "exit": 0, "threads": 2,
@@ -192,6 +192,18 @@ def test_a_run_with_another_recipe_is_flagged(bench):
     assert "camera_s0" not in flagged and "`lidar_s1` (gt_paste)" in flagged
     assert "per variant: `gt_paste` 8 (lidar, full, concat, mcm), 0 (camera, lidar)" in setup
     assert "`full_s0` `def5678`" in setup
+
+
+def test_a_field_a_run_predates_counts_at_its_default(bench):
+    """A run recorded before a config field existed ran with the field's default: a later run
+    with that default is the same recipe, one with another value is not."""
+    add_run(bench, "lidar_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)))
+    add_run(bench, "lidar_s1", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)),
+            config={"velocity_tower": 0, "loss": {"semantic": 0.0}})
+    assert "Not one recipe" not in section(render(bench), "Setup")
+    add_run(bench, "full_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), config={"velocity_tower": 32})
+    flagged = section(render(bench), "Setup").split("**Not one recipe:**")[1].split("\n")[0]
+    assert "`full_s0` (model config)" in flagged and "lidar_s1" not in flagged
 
 
 def test_the_write_is_atomic(bench, monkeypatch):
