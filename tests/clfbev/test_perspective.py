@@ -125,3 +125,38 @@ def test_the_model_builds_and_trains_the_head_only_with_a_weight(tiny_dataset):
     with torch.no_grad():
         on.camera_encoder.semantic_head.weight.add_(1.0)
     torch.testing.assert_close(on(batch).cls_logits, before)
+
+
+def test_semantic_lift_puts_the_class_probabilities_in_the_camera_bev():
+    """With ``semantic_lift`` the camera BEV has one more channel per class: the depth-weighted
+    splat of the head's sigmoid probabilities, next to the context's."""
+    from clfbev.camera_encoder import compress_z, lift_geometry, splat
+
+    pc_range, voxel = (-51.2, -51.2, -5.0, 51.2, 51.2, 3.0), (0.8, 0.8, 8.0)
+    enc = CameraEncoder(18, 8, 16, BINS, 8, (64, 176), 8, pc_range, voxel, semantic_classes=3, semantic_lift=True)
+    assert enc.out_channels == 8 + 3
+    torch.manual_seed(0)
+    images = torch.randn(1, 2, 3, 64, 176)
+    K = torch.tensor([[100.0, 0.0, 88.0], [0.0, 100.0, 32.0], [0.0, 0.0, 1.0]]).expand(1, 2, 3, 3)
+    T = front_camera().float().expand(1, 2, 4, 4)
+    with torch.no_grad():
+        bev, depth, logits = enc.lift_splat(images, K, T)
+        geom = lift_geometry(K, T, None, (64, 176), 8, BINS)
+        expected = compress_z(splat(depth, logits.sigmoid(), geom, pc_range, voxel))
+    assert bev.shape[1] == 11 and bev[:, 8:].sum() > 0
+    torch.testing.assert_close(bev[:, 8:], expected)
+    with pytest.raises(ValueError, match="semantic_classes"):
+        CameraEncoder(18, 8, 16, BINS, 8, (64, 176), 8, pc_range, voxel, semantic_lift=True)
+
+
+def test_semantic_lift_needs_the_perspective_loss(tmp_path):
+    from clfbev.config import load_config
+
+    with pytest.raises(ValueError, match="loss.semantic"):
+        replace(tiny(), cam_semantic_lift=True)
+    cfg = replace(tiny(), cam_semantic_lift=True, loss=replace(tiny().loss, semantic=1.0))
+    assert cfg.cam_bev_channels == tiny().cam_bev_channels + len(cfg.class_names)
+    bad = tmp_path / "lift.yaml"
+    bad.write_text("preset: tiny\ncam_semantic_lift: true\n")
+    with pytest.raises(ValueError, match="lift.yaml"):
+        load_config(bad)
