@@ -69,19 +69,19 @@ def nearest_lidar_points(
         keep = points[b][:, 4] == 0
         if ignore is not None and ignore[b] is not None:
             keep &= ~ignore[b]
-        rows = torch.nonzero(keep).squeeze(1)
-        xyz1 = F.pad(points[b][rows, :3].double(), (0, 1), value=1.0)   # (n, 4)
+        kept = torch.nonzero(keep).squeeze(1)                           # (n,) rows of points[b]
+        xyz1 = F.pad(points[b][kept, :3].double(), (0, 1), value=1.0)   # (n, 4)
         uvz = torch.einsum("nij,pj->npi", P[b], xyz1)                   # (N, n, 3)
         z = uvz[..., 2]
         u, v = uvz[..., 0] / z, uvz[..., 1] / z
-        cols, rows_px = torch.floor(u / feature_stride).long(), torch.floor(v / feature_stride).long()
-        ok = (z > d_min) & (z < z_max) & (cols >= 0) & (cols < w) & (rows_px >= 0) & (rows_px < h)
+        cols, rows = torch.floor(u / feature_stride).long(), torch.floor(v / feature_stride).long()
+        ok = (z > d_min) & (z < z_max) & (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
         cam = torch.arange(N, device=device)[:, None].expand_as(z)
-        cell, z_ok = ((cam * h + rows_px) * w + cols)[ok], z[ok]
+        cell, z_ok = ((cam * h + rows) * w + cols)[ok], z[ok]
         depth[b].scatter_reduce_(0, cell, z_ok, reduce="amin")
         # The row of the nearest point: a max over the points at the cell's minimum (deterministic).
         nearest = z_ok == depth[b][cell]
-        point_row = rows[None, :].expand_as(z)[ok]
+        point_row = kept[None, :].expand_as(z)[ok]
         index[b].scatter_reduce_(0, cell[nearest], point_row[nearest], reduce="amax")
     return depth.view(B, N, h, w), index.view(B, N, h, w)
 
