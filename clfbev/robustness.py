@@ -105,7 +105,8 @@ def conditions_of(sets: list[tuple[str, Path]], corruptions: list[Corruption], v
     out = [Condition(clean_name, clean_root, (), fog_severity_of(clean_root, version) or 0)]
     for name, root in others:
         check_paired(clean_root, root, version, name)
-        out.append(Condition(name, root, (), fog_severity_of(root, version)))
+        # A degraded set without fog (occlusion, lens dirt) is not a point of the fog curve.
+        out.append(Condition(name, root, (), fog_severity_of(root, version) or None))
     out += [Condition(str(c), clean_root, (c,)) for c in corruptions]
     names = [c.name for c in out]
     if len(set(names)) != len(names):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 
@@ -16,6 +17,7 @@ from clfbev.config import config_from_dict, tiny
 from clfbev.corruptions import Corruption, parse
 from clfbev.data import NuScenesDetection
 from clfbev.model import CLFusionBEV
+from clfbev.robustness import conditions_of
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -182,3 +184,16 @@ def test_plot_of_fog_sets_only_has_the_fog_panel(tmp_path):
     plot(both, tmp_path / "both.png")
     w_fog, w_both = (cv2.imread(str(tmp_path / f)).shape[1] for f in ("fog.png", "both.png"))
     assert w_fog == 660 and w_both == 1430      # 6 and 13 inches at 110 dpi
+
+
+def test_only_fogged_sets_are_points_of_the_fog_curve(tiny_dataset, tmp_path):
+    """The clean set is severity 0; a paired set without fog (occlusion, lens dirt) is not a fog
+    condition, so the plot shows it as a bar, not as a second point at severity 0."""
+    sets = [("clean", tiny_dataset)]
+    for name, settings in [("occlusion", {"fog": 0, "occlusion": "heavy"}), ("fog2", {"fog": 2})]:
+        root = tmp_path / name
+        shutil.copytree(tiny_dataset / "v1.0-sim", root / "v1.0-sim", ignore=shutil.ignore_patterns("degradation.json"))
+        (root / "v1.0-sim" / "degradation.json").write_text(json.dumps({"settings": settings}))
+        sets.append((name, root))
+    severity = {c.name: c.fog_severity for c in conditions_of(sets, [], "v1.0-sim")}
+    assert severity == {"clean": 0, "occlusion": None, "fog2": 2}
