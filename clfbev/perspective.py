@@ -18,7 +18,10 @@ one without any 2D labelling:
    loss of the detection head, summed over the labelled cells and classes and divided by the
    number of cells of an object class (as the detection loss divides by its positives).
 
-The head only trains the image features; its output is not lifted and inference ignores it.
+By default the head only trains the image features and inference ignores it;
+``cam_semantic_lift`` also lifts its class probabilities into the camera BEV
+(:class:`clfbev.camera_encoder.CameraEncoder`).
+
 Pasted objects (GT-paste) have no pixels: their points are left out of step 1, and the loader
 removes the real points inside them, so no real point falls in a pasted box.
 """
