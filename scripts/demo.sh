@@ -2,7 +2,7 @@
 # The main job, end to end on a fresh machine: install, generate a small urban dataset, train the
 # tiny CL-FusionBEV from scratch, evaluate it with the official nuScenes metrics, and write
 # demo_out/REPORT.md with the metrics, the loss curve and camera / BEV / attention pictures.
-#   bash scripts/demo.sh                       # defaults below (about 25 min on 2 CPU cores)
+#   bash scripts/demo.sh                       # defaults below (about 30 min on 2 CPU cores)
 #   SCENES=4 SAMPLES=6 EPOCHS=1 bash scripts/demo.sh   # a quick look
 # Training uses the tiny config's recipe (`clfbev train --config tiny`, see clfbev/train.py:
 # recipe); EPOCHS only shortens it.
