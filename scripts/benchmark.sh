@@ -13,7 +13,8 @@
 # last.pt. The table is rewritten after every run, so it can be completed in parts.
 # Each evaluated run also leaves its record (run.json, wall.jsonl, metrics_summary.json; a few kB)
 # in RECORD, which is tracked: on another machine or a fresh clone a recorded run is restored
-# from there instead of retrained, so the table can be completed in parts across machines too.
+# from there instead of retrained, so the table can be completed in parts across machines too,
+# but only for the same settings and the same data (its layout's hash, in data_id).
 # Delete a run's record folder to run it again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -59,8 +60,12 @@ done
 # The benchmark's settings: a record or an OUT of other settings is never mixed into this table.
 settings="{\"scenes\": $SCENES, \"samples_per_scene\": $SAMPLES, \"resolution\": \"$RES\", \"data_seed\": $DATA_SEED, \"val_fraction\": $VAL_FRACTION, \"steps\": $STEPS}"
 
-recorded() {  # run -> true when RECORD holds its evaluation, of this benchmark's settings
-  [ -f "$RECORD/$1/metrics_summary.json" ] && [ "$(cat "$RECORD/$1/benchmark.json" 2>/dev/null)" = "$settings" ]
+# The data's identity (scripts/data_identity.py), once OUT's data has been made: a record of other
+# data is never restored. Before that (`--list` on a fresh clone) the settings alone decide.
+data_id=$(cat "$OUT/data_id" 2>/dev/null || true)
+recorded() {  # run -> true when RECORD holds its evaluation, of this benchmark's settings and data
+  [ -f "$RECORD/$1/metrics_summary.json" ] && [ "$(cat "$RECORD/$1/benchmark.json" 2>/dev/null)" = "$settings" ] &&
+    { [ -z "$data_id" ] || [ "$(cat "$RECORD/$1/data_id" 2>/dev/null)" = "$data_id" ]; }
 }
 state_of() {  # run -> done | recorded | started | pending (from the files alone: no python yet)
   if [ -f "$OUT/$1/eval/metrics_summary.json" ]; then echo done
@@ -91,6 +96,9 @@ echo "benchmark: data $DATA ($SCENES scenes x $SAMPLES key frames at $RES, seed 
 .venv/bin/simgen make --scenes "$SCENES" --samples-per-scene "$SAMPLES" --resolution "$RES" --seed "$DATA_SEED" \
   --val-fraction "$VAL_FRACTION" --out "$DATA" --quiet
 
+data_id=$($PY scripts/data_identity.py "$DATA")
+echo "$data_id" > "$OUT/.data_id.tmp" && mv "$OUT/.data_id.tmp" "$OUT/data_id"
+
 ckpt_step() {  # the optimizer step a last.pt was written at
   $PY -c 'import sys; from clfbev.checkpoint import load_checkpoint; print(load_checkpoint(sys.argv[1])["step"])' "$1"
 }
@@ -103,7 +111,7 @@ table() {
 keep_record() {  # run: its small files into RECORD/run, each replaced whole
   local rec=$RECORD/$1 f
   mkdir -p "$rec"
-  for f in "$OUT/benchmark.json" "$OUT/$1/run.json" "$OUT/$1/wall.jsonl" "$OUT/$1/eval/metrics_summary.json"; do
+  for f in "$OUT/benchmark.json" "$OUT/data_id" "$OUT/$1/run.json" "$OUT/$1/wall.jsonl" "$OUT/$1/eval/metrics_summary.json"; do
     cp "$f" "$rec/.$(basename "$f").tmp" && mv "$rec/.$(basename "$f").tmp" "$rec/$(basename "$f")"
   done
 }

@@ -268,7 +268,8 @@ def test_the_runs_their_order_and_the_variants_clfbev_knows(tmp_path):
 
 def test_a_recorded_run_counts_only_with_the_same_settings(tmp_path):
     """docs/results/RUN holds an evaluated run's record: --list calls it recorded when its
-    benchmark.json is this benchmark's settings, pending otherwise; the OUT folder wins."""
+    benchmark.json is this benchmark's settings (and its data_id OUT's data, once made),
+    pending otherwise; the OUT folder wins."""
     bench_sh(tmp_path, "--list")                                    # makes the repo copy
     repo = tmp_path / "repo"
     settings = ('{"scenes": 40, "samples_per_scene": 20, "resolution": "704x396", "data_seed": 1, '
@@ -280,10 +281,46 @@ def test_a_recorded_run_counts_only_with_the_same_settings(tmp_path):
         (rec / "metrics_summary.json").write_text("{}")
     state = dict(zip(*[iter(bench_sh(tmp_path, "--list").stdout.split())] * 2))
     assert state["lidar_s0"] == "recorded" and state["full_s0"] == "pending" and state["lidar_s1"] == "pending"
-    (repo / "benchmark_out" / "lidar_s0").mkdir(parents=True)
+    # Once OUT's data exists, its identity must match the record's too: another layout's
+    # record is not restored.
+    (repo / "docs" / "results" / "lidar_s0" / "data_id").write_text("a1\n")
+    (repo / "benchmark_out").mkdir()
+    for data_id, expected in (("a1", "recorded"), ("b2", "pending")):
+        (repo / "benchmark_out" / "data_id").write_text(data_id + "\n")
+        assert bench_sh(tmp_path, "--list", "lidar_s0").stdout.split() == ["lidar_s0", expected]
+    (repo / "benchmark_out" / "lidar_s0").mkdir()
     (repo / "benchmark_out" / "lidar_s0" / "last.pt").write_bytes(b"")
     assert "lidar_s0 started" in bench_sh(tmp_path, "--list", "lidar_s0").stdout
     # A smoke test's records go beside its own RESULTS, not into docs/results.
     smoke = bench_sh(tmp_path, "--list", "lidar_s0", RESULTS=str(tmp_path / "smoke" / "results.md"),
                      OUT=str(tmp_path / "smoke_out"))
     assert smoke.stdout.split() == ["lidar_s0", "pending"]
+
+
+def test_the_data_identity_follows_the_layout_not_the_sensor_counts(tiny_dataset, tmp_path):
+    """scripts/data_identity.py: the same for a copy and for other num_lidar_pts / visibility;
+    another for an annotation moved by 1 cm or for other splits."""
+    spec = importlib.util.spec_from_file_location("data_identity", ROOT / "scripts" / "data_identity.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    copy = tmp_path / "data"
+    shutil.copytree(tiny_dataset / "v1.0-sim", copy / "v1.0-sim")
+    table = copy / "v1.0-sim" / "sample_annotation.json"
+    original = json.loads(table.read_text())
+    base = mod.data_identity(tiny_dataset)
+    assert mod.data_identity(copy) == base
+
+    def identity_with(edit) -> str:
+        anns = json.loads(json.dumps(original))
+        edit(anns[0])
+        table.write_text(json.dumps(anns))
+        return mod.data_identity(copy)
+
+    assert identity_with(lambda a: a.update(num_lidar_pts=a["num_lidar_pts"] + 7, visibility_token="1")) == base
+    assert identity_with(lambda a: a["translation"].__setitem__(0, a["translation"][0] + 0.01)) != base
+    table.write_text(json.dumps(original))
+    splits = copy / "v1.0-sim" / "splits.json"
+    s = json.loads(splits.read_text())
+    s["sim-train"], s["sim-val"] = s["sim-val"], s["sim-train"]
+    splits.write_text(json.dumps(s))
+    assert mod.data_identity(copy) != base
