@@ -24,7 +24,7 @@ import types
 import cv2
 import numpy as np
 
-from . import geometry as geo
+from . import geometry
 from .config import CameraConfig
 from .rig import Camera
 from .world import World
@@ -109,8 +109,7 @@ class Renderer:
 
     What is drawn per camera: the static world in square tiles of ``STATIC_TILE`` metres and the
     moving actors, each culled by its bounding sphere against the view frustum, drawn near to
-    far. (A modest gain, about 5% per 1600x900 image: llvmpipe's time goes mostly to filling
-    pixels.) pyrender's own draw list (every mesh node, sorted by distance on every frame, then
+    far. (A modest gain: llvmpipe's time goes mostly to filling pixels.) pyrender's own draw list (every mesh node, sorted by distance on every frame, then
     the hidden ones skipped) is replaced on this instance by the culled list: opaque,
     depth-tested geometry needs no sorting.
     """
@@ -168,7 +167,7 @@ class Renderer:
                                       [np.asarray(sm.visual.face_colors)[:, :3]], [np.zeros(len(sm.faces), np.int32)])
         for i, a in enumerate(world.actors):
             if a.annotate and not moving[i]:
-                T = geo.pose_2d(boxes[i, 0], boxes[i, 1], boxes[i, 6], boxes[i, 2])
+                T = geometry.pose_2d(boxes[i, 0], boxes[i, 1], boxes[i, 6], boxes[i, 2])
                 tris.append(np.asarray(a.mesh.triangles) @ T[:3, :3].T + T[:3, 3])
                 norms.append(np.asarray(a.mesh.face_normals) @ T[:3, :3].T)
                 albedo.append(np.asarray(a.mesh.visual.face_colors)[:, :3])

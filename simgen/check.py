@@ -5,7 +5,7 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from .config import ConfigError
+from .errors import DataError
 from .writer import TABLES
 
 # table -> [(field, table it must reference)]; "" is allowed where a chain ends.
@@ -26,7 +26,7 @@ REFERENCES = {
 def load_tables(dataroot: Path, version: str) -> dict[str, list[dict]]:
     folder = Path(dataroot) / version
     if not folder.is_dir():
-        raise ConfigError(f"{dataroot}: no {version}/ folder with nuScenes tables")
+        raise DataError(f"{dataroot}: no {version}/ folder with nuScenes tables")
     tables = {}
     optional = ("lidarseg",)          # nuScenes-lidarseg: absent when no key frame has points
     for name in TABLES + optional:
@@ -34,13 +34,13 @@ def load_tables(dataroot: Path, version: str) -> dict[str, list[dict]]:
         if name in optional and not path.is_file():
             continue
         if not path.is_file():
-            raise ConfigError(f"{path}: missing table")
+            raise DataError(f"{path}: missing table")
         try:
             tables[name] = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise ConfigError(f"{path}: corrupt JSON ({e})") from None
+            raise DataError(f"{path}: corrupt JSON ({e})") from None
         if not isinstance(tables[name], list):
-            raise ConfigError(f"{path}: expected a list of records")
+            raise DataError(f"{path}: expected a list of records")
     return tables
 
 

@@ -1,7 +1,8 @@
 """`simgen make | presets | check | show`.
 
-Bad input (an unknown preset key, a negative count, a zero resolution, an unwritable --out)
-gets one line naming the problem on stderr and exit code 2, before anything is written.
+Bad input (an unknown preset key, a negative count, a zero resolution, an unwritable --out, a
+damaged file, an unreachable cluster: :mod:`simgen.errors`) gets one line naming the problem on
+stderr and exit code 2, before anything is written. Any other exception keeps its traceback.
 """
 from __future__ import annotations
 
@@ -11,9 +12,7 @@ import re
 import sys
 from pathlib import Path
 
-from .config import ConfigError
-
-EXIT_BAD_INPUT = 2
+from .errors import EXIT_BAD_INPUT, ConfigError, InputError
 
 
 def _positive_int(name):
@@ -128,7 +127,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)   # argparse itself exits with code 2 on malformed arguments
     try:
         return _run(args)
-    except ConfigError as e:
+    except InputError as e:
         print(f"simgen: error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:

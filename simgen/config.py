@@ -7,20 +7,19 @@ file, the dotted field and the allowed range. Keys left out take the defaults be
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, get_args, get_origin, get_type_hints
 
 import yaml
 
+from .errors import ConfigError
+
 PRESET_DIR = Path(__file__).resolve().parent.parent / "scenes"
 
 
-class ConfigError(ValueError):
-    """Bad user input: the message is one line naming the file, field and allowed values."""
-
-
-def _rng(lo=None, hi=None, choices=None):
+def allowed(lo=None, hi=None, choices=None) -> dict:
     """Field metadata: the allowed range (inclusive) or the allowed choices."""
     return {"lo": lo, "hi": hi, "choices": choices}
 
@@ -28,66 +27,66 @@ def _rng(lo=None, hi=None, choices=None):
 @dataclass(frozen=True)
 class LayoutConfig:
     """The road grid. Road centrelines are ``block_pitch`` apart in x and y."""
-    blocks_x: int = field(default=3, metadata=_rng(1, 12))
-    blocks_y: int = field(default=3, metadata=_rng(1, 12))
-    block_pitch: float = field(default=90.0, metadata=_rng(40.0, 300.0))
-    lanes_per_direction: int = field(default=2, metadata=_rng(1, 3))
-    lane_width: float = field(default=3.5, metadata=_rng(2.5, 4.5))
-    parking_width: float = field(default=2.5, metadata=_rng(2.0, 3.5))
-    sidewalk_width: float = field(default=5.0, metadata=_rng(3.0, 8.0))
-    building_height: tuple[float, float] = field(default=(6.0, 30.0), metadata=_rng(3.0, 200.0))
-    building_gap: tuple[float, float] = field(default=(1.0, 8.0), metadata=_rng(0.0, 50.0))
-    clutter_spacing: float = field(default=14.0, metadata=_rng(4.0, 100.0))
+    blocks_x: int = field(default=3, metadata=allowed(1, 12))
+    blocks_y: int = field(default=3, metadata=allowed(1, 12))
+    block_pitch: float = field(default=90.0, metadata=allowed(40.0, 300.0))
+    lanes_per_direction: int = field(default=2, metadata=allowed(1, 3))
+    lane_width: float = field(default=3.5, metadata=allowed(2.5, 4.5))
+    parking_width: float = field(default=2.5, metadata=allowed(2.0, 3.5))
+    sidewalk_width: float = field(default=5.0, metadata=allowed(3.0, 8.0))
+    building_height: tuple[float, float] = field(default=(6.0, 30.0), metadata=allowed(3.0, 200.0))
+    building_gap: tuple[float, float] = field(default=(1.0, 8.0), metadata=allowed(0.0, 50.0))
+    clutter_spacing: float = field(default=14.0, metadata=allowed(4.0, 100.0))
 
 
 @dataclass(frozen=True)
 class ActorsConfig:
     """Actor densities. "per_km" counts are per km of road centreline."""
-    parked_fraction: float = field(default=0.55, metadata=_rng(0.0, 1.0))
-    vehicles_per_km: float = field(default=22.0, metadata=_rng(0.0, 200.0))
+    parked_fraction: float = field(default=0.55, metadata=allowed(0.0, 1.0))
+    vehicles_per_km: float = field(default=22.0, metadata=allowed(0.0, 200.0))
     vehicle_mix: dict = field(default_factory=lambda: {
         "car": 0.82, "truck": 0.07, "bus": 0.04, "motorcycle": 0.07})
-    pedestrians_per_km: float = field(default=70.0, metadata=_rng(0.0, 1000.0))
-    standing_fraction: float = field(default=0.3, metadata=_rng(0.0, 1.0))
-    crossing_fraction: float = field(default=0.25, metadata=_rng(0.0, 1.0))
-    bicycles_per_km: float = field(default=8.0, metadata=_rng(0.0, 200.0))
-    parked_bicycles_per_km: float = field(default=10.0, metadata=_rng(0.0, 200.0))
-    cones_per_km: float = field(default=8.0, metadata=_rng(0.0, 200.0))
-    barriers_per_km: float = field(default=6.0, metadata=_rng(0.0, 200.0))
-    stop_probability: float = field(default=0.2, metadata=_rng(0.0, 1.0))
+    pedestrians_per_km: float = field(default=70.0, metadata=allowed(0.0, 1000.0))
+    standing_fraction: float = field(default=0.3, metadata=allowed(0.0, 1.0))
+    crossing_fraction: float = field(default=0.25, metadata=allowed(0.0, 1.0))
+    bicycles_per_km: float = field(default=8.0, metadata=allowed(0.0, 200.0))
+    parked_bicycles_per_km: float = field(default=10.0, metadata=allowed(0.0, 200.0))
+    cones_per_km: float = field(default=8.0, metadata=allowed(0.0, 200.0))
+    barriers_per_km: float = field(default=6.0, metadata=allowed(0.0, 200.0))
+    stop_probability: float = field(default=0.2, metadata=allowed(0.0, 1.0))
 
 
 @dataclass(frozen=True)
 class EgoConfig:
     """The ego's cruise speed is drawn from ``speed`` (m/s)."""
-    speed: tuple[float, float] = field(default=(4.0, 12.0), metadata=_rng(0.0, 15.0))
+    speed: tuple[float, float] = field(default=(4.0, 12.0), metadata=allowed(0.0, 15.0))
 
 
 @dataclass(frozen=True)
 class CameraConfig:
     """Six cameras rendered with pyrender. Intrinsics are scaled to ``resolution``."""
-    resolution: tuple[int, int] = field(default=(1600, 900), metadata=_rng(16, 4096))
-    jpeg_quality: int = field(default=92, metadata=_rng(90, 100))
-    ambient: float = field(default=0.45, metadata=_rng(0.0, 2.0))
-    sun_intensity: float = field(default=3.0, metadata=_rng(0.0, 20.0))
-    zfar: float = field(default=400.0, metadata=_rng(50.0, 5000.0))
+    resolution: tuple[int, int] = field(default=(1600, 900), metadata=allowed(16, 4096))
+    jpeg_quality: int = field(default=92, metadata=allowed(90, 100))
+    ambient: float = field(default=0.45, metadata=allowed(0.0, 2.0))
+    sun_intensity: float = field(default=3.0, metadata=allowed(0.0, 20.0))
+    zfar: float = field(default=400.0, metadata=allowed(50.0, 5000.0))
     # pyrender (rasterised, the default) or mitsuba (path-traced rgb, simgen/mitsuba_camera.py).
-    renderer: str = field(default="pyrender", metadata=_rng(choices=("pyrender", "mitsuba")))
-    spp: int = field(default=16, metadata=_rng(1, 4096))
+    renderer: str = field(default="pyrender", metadata=allowed(choices=("pyrender", "mitsuba")))
+    spp: int = field(default=16, metadata=allowed(1, 4096))
 
 
 @dataclass(frozen=True)
 class LidarConfig:
     """HDL-32E: 32 rings from -30.67 to +10.67 deg, 20 Hz rotation."""
-    azimuth_step_deg: float = field(default=0.33, metadata=_rng(0.05, 2.0))
-    min_range: float = field(default=1.0, metadata=_rng(0.0, 5.0))
-    max_range: float = field(default=100.0, metadata=_rng(70.0, 100.0))
-    range_noise_sigma: float = field(default=0.02, metadata=_rng(0.0, 0.5))
+    azimuth_step_deg: float = field(default=0.33, metadata=allowed(0.05, 2.0))
+    min_range: float = field(default=1.0, metadata=allowed(0.0, 5.0))
+    max_range: float = field(default=100.0, metadata=allowed(70.0, 100.0))
+    range_noise_sigma: float = field(default=0.02, metadata=allowed(0.0, 0.5))
     # A return is detected when rho * cos(incidence) / R^2 >= min_return (1/m^2): a target of
     # reflectivity 0.05 at normal incidence is seen to 100 m, the asphalt ahead to about 35 m.
-    min_return: float = field(default=5e-6, metadata=_rng(0.0, 1.0))
+    min_return: float = field(default=5e-6, metadata=allowed(0.0, 1.0))
     # Intensity 255 is reached by rho * cos / R^2 >= 1 / intensity_ref_range^2.
-    intensity_ref_range: float = field(default=6.0, metadata=_rng(0.5, 100.0))
+    intensity_ref_range: float = field(default=6.0, metadata=allowed(0.5, 100.0))
     # Fog keeps this threshold: a return is lost only when the lidar equation puts it below
     # min_return, and a fog echo replaces it only where stronger (simgen/degrade.py).
 
@@ -109,13 +108,13 @@ class DegradeConfig:
     (simgen/occluders.py). Unlike the others it changes the world, hence the annotations'
     visibility and num_lidar_pts (never which objects exist).
     """
-    fog: int = field(default=0, metadata=_rng(0, 5))
-    fog_visibility: float = field(default=0.0, metadata=_rng(0.0, 100000.0))
-    lens_occlusion: int = field(default=0, metadata=_rng(0, 5))
-    beam_drop: int = field(default=0, metadata=_rng(0, 32))
-    lidar_fov: float = field(default=360.0, metadata=_rng(1.0, 360.0))
+    fog: int = field(default=0, metadata=allowed(0, 5))
+    fog_visibility: float = field(default=0.0, metadata=allowed(0.0, 100000.0))
+    lens_occlusion: int = field(default=0, metadata=allowed(0, 5))
+    beam_drop: int = field(default=0, metadata=allowed(0, 32))
+    lidar_fov: float = field(default=360.0, metadata=allowed(1.0, 360.0))
     drop_sensors: str = ""
-    occlusion: str = field(default="none", metadata=_rng(choices=("none", "light", "heavy")))
+    occlusion: str = field(default="none", metadata=allowed(choices=("none", "light", "heavy")))
 
     @property
     def alpha(self) -> float:
@@ -183,6 +182,8 @@ REMOVED_KEYS = {
 def _check_number(value, typ, meta, where):
     if typ is bool or isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(f"{where}: expected a number, got {value!r}")
+    if not math.isfinite(value):
+        raise ConfigError(f"{where}: expected a finite number, got {value!r}")
     if typ is int and not float(value).is_integer():
         raise ConfigError(f"{where}: expected an integer, got {value!r}")
     lo, hi = meta.get("lo"), meta.get("hi")

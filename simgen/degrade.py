@@ -3,80 +3,21 @@ lidar field of view and dead sensors. Pure functions of arrays and an explicit r
 
 Fog
 ---
-One extinction coefficient ``alpha`` (1/m) drives both sensors. Severity 1-5 uses the lidar
-alphas of the common-corruption benchmark, ``FOG_ALPHA``; the meteorological optical range
-(visibility) is ``MOR = ln(20) / alpha``.
+One extinction coefficient ``alpha`` (1/m) drives both sensors, so that a fog setting means the
+same thing to each. Severity 1-5 uses the lidar alphas of the common-corruption benchmark,
+``FOG_ALPHA``; the meteorological optical range (visibility) is ``MOR = ln(20) / alpha``.
 
 - Camera, Koschmieder's law on the rendered metric range ``d`` of each pixel:
   ``I = J t + A (1 - t)``, ``t = exp(-alpha d)``; sky pixels (no hit) take the airlight ``A``.
 - Lidar: the lidar equation with a hard and a soft (fog) target, after Rasshofer et al. (2011)
-  and Hahner et al. (ICCV 2021, Sec. 3), re-derived here from their equations with the units
-  written out (no code of theirs is used).
+  and Hahner et al. (ICCV 2021, Sec. 3), re-derived from their equations with the units written
+  out (no code of theirs is used). Strongest return: the sensor reports the higher of the hard
+  echo ``rho cos exp(-2 alpha R0) / R0^2`` and the fog's peak, when it reaches the clear-weather
+  threshold ``min_return``; so fog replaces a hard return only where it is stronger. The fog's
+  peak power and range, as functions of R0, are a table built once per alpha (:func:`fog_table`).
+  Intensities use lidar.py's scale: ``intensity = 255 * clip(p * ref_range^2, 0, 1)``.
 
-Lidar fog: derivation
----------------------
-The received waveform, on the range axis ``R = c t / 2`` of the receive time t, is the pulse
-convolved with the spatial impulse response (Rasshofer et al. 2011; Hahner et al. 2021, Sec. 3)::
-
-    P_R(R) = C_A int_0^{2R/c} P0(t) H(R - c t / 2) dt,     P0(t) = P0 sin^2(pi t / (2 tau_H)) on [0, 2 tau_H]
-
-C_A is the system constant (aperture, optics), tau_H the half-power pulse width.
-``H(R) = H_C(R) H_T(R)``: the channel ``H_C = xi(R) T(R)^2 / R^2`` (1/m^2), with the two-way
-transmission ``T^2 = exp(-2 alpha R)`` and the crossover ``xi`` (the share of the beam the receiver
-sees), and the target ``H_T`` (1/(m sr)):
-
-- hard, a Lambertian surface of reflectivity rho at R0 seen under incidence cos:
-  ``H_T = (rho cos / pi) delta(R - R0)``: rho / pi per steradian (its differential
-  reflectivity), delta per metre;
-- soft, the fog in front of it: ``H_T = beta U(R0 - R)``, beta the backscatter per metre and
-  steradian.
-
-With ``R' = R - c t / 2`` (``dt = 2 dR' / c``) both responses carry the same factor ``C_A P0 2/c``::
-
-    P_hard(R) = C_A P0 (2/c) (rho cos / pi) exp(-2 alpha R0) / R0^2 sin^2(pi (R - R0) / (c tau_H))
-    P_soft(R) = C_A P0 (2/c) beta int_{R - c tau_H}^{min(R, R0)} sin^2(pi (R - R') / (c tau_H)) xi(R') exp(-2 alpha R') / R'^2 dR'
-
-The hard echo is the pulse itself, its peak at ``R0 + c tau_H / 2``. The common factor cancels when
-the two are compared, so P0 and the aperture decide nothing here; they set the absolute
-threshold, which the simulator already has as ``min_return``. In units of ``C_A P0 (2/c) / pi``,
-those of lidar.py, where a clear-weather return has power ``rho cos / R^2`` and ``min_return``
-is its threshold (1/m^2)::
-
-    p_hard = rho cos exp(-2 alpha R0) / R0^2
-    p_soft(R) = pi beta int sin^2(...) xi(R') exp(-2 alpha R') / R'^2 dR'      (1/(m sr) * 1/m)
-
-Beyond the crossover the integral is ``(c tau_H / 2) / R^2``, so ``p_soft / p_hard`` is
-``pi beta (c tau_H / 2) / (rho cos)``: the textbook ratio of a volume target to a Lambertian one.
-
-Strongest return (the return mode modelled): the sensor reports the higher peak,
-``p = max(p_hard, max_R p_soft(R))``, and reports it when ``p >= min_return``, the clear-weather
-threshold in the same units. A fog return therefore replaces a hard return only where it is
-stronger, and a ray whose attenuated hard return is above the threshold always reports
-something. The sensor's range is calibrated on hard echoes (peak at ``R0 + c tau_H / 2``), so a
-fog peak at waveform range ``R_w`` is reported at ``R_w - c tau_H / 2``, with
-``FOG_RANGE_NOISE``. No background-light term: the clear-weather threshold stands.
-
-``max_R p_soft`` and the reported fog range, as functions of R0, are a lookup table built once
-per alpha (:func:`fog_table`); for R0 short of the fog's own peak the integral is cut at R0
-exactly. A sweep then costs one look-up per point.
-
-Parameters: ``beta = 0.046 / MOR`` (Rasshofer et al. 2011, advection fog; Hahner's default);
-``tau_H = 20`` ns and the linear crossover from ``xi(0.9 m) = 0`` to ``xi(1.0 m) = 1`` are Hahner's
-defaults; no published pulse width or crossover of the HDL-32E is used, so Hahner's are kept
-(docs/fog.md shows how the figures move with either). Hahner et al.'s published procedure
-scales its soft echo from each point's intensity with ``gamma = 1e-6`` and a soft-target
-integral over time (s/m^2), where the lidar equation has it over range (``dR' = c dt / 2``): this
-amounts to a Lambertian reflectivity ``gamma c / 2 = 150`` for every point, an echo hundreds of
-times weaker than here, which is why its fog wins only where the attenuated intensity rounds
-to 0 (docs/fog.md).
-Intensities use lidar.py's scale: ``intensity = 255 * clip(p * ref_range^2, 0, 1)``.
-
-The previous model compared ``rho cos / R^2`` with ``beta int`` (the soft side without its pi)
-and multiplied the threshold by ``1 + G (1 - exp(-alpha R0))`` with a calibrated ``G = 200``,
-which erased returns that the lidar equation keeps.
-
-Only rays with a clean return enter (the clean sweep holds no misses), so a ray into the open
-sky makes no fog return here, though in this model its fog echo would be above the threshold.
+The derivation with units, the parameters and how the results move with them: docs/fog.md.
 
 References: R. H. Rasshofer, M. Spies, H. Spies, "Influences of weather phenomena on automotive
 laser radar systems", Adv. Radio Sci. 9, 2011. M. Hahner, C. Sakaridis, D. Dai, L. Van Gool,
@@ -120,8 +61,8 @@ def fog_image(rgb: np.ndarray, range_m: np.ndarray, alpha: float, airlight=AIRLI
     t = np.exp(np.float32(-alpha) * range_m.astype(np.float32, copy=False))
     t[range_m <= 0] = 0.0
     # OpenCV's blendLinear computes (J w1 + A w2) / (w1 + w2 + 1e-5) per pixel, from the uint8
-    # image to the nearest uint8 level, in one pass: 4-5 ms at 1600x900 against 21 ms for the
-    # same in separate float32 steps (each allocating and touching a 17 MB array). Weights
+    # image to the nearest uint8 level, in one pass instead of separate float32 steps that each
+    # allocate and touch an image-sized array. Weights
     # summing to 1e4 make its epsilon a 1e-9 share (with t and 1 - t it would be 1e-5, 0.0026 of
     # a level at 255).
     w = t * np.float32(1e4)

@@ -15,17 +15,12 @@ from __future__ import annotations
 import numpy as np
 from pyquaternion import Quaternion
 
-from . import geometry as geo
+from . import geometry
 from .world import CYCLES, Actor
 
 VISIBILITY_BINS = np.array([0.4, 0.6, 0.8])
 MOVING_SPEED = {"pedestrian": 0.2}   # m/s above which an actor counts as moving
 DEFAULT_MOVING_SPEED = 0.3
-
-
-# Corner signs of the devkit's Box.corners (x forward, y left, z up; the first four face forward).
-_CORNER_SIGNS = (np.array([1, 1, 1, 1, -1, -1, -1, -1]), np.array([1, -1, -1, 1, 1, -1, -1, 1]),
-                 np.array([1, 1, -1, -1, 1, 1, -1, -1]))
 
 
 def count_points_in_boxes(points_lidar: np.ndarray, anns: list[dict], ego_pose: dict, calib: dict) -> list[int]:
@@ -37,8 +32,8 @@ def count_points_in_boxes(points_lidar: np.ndarray, anns: list[dict], ego_pose: 
     same pyquaternion and numpy operations in the same order as the devkit's ``Box.translate``,
     ``Box.rotate``, ``Box.corners`` and ``points_in_box``, so the float results are the same.
     The devkit itself is not imported here: ``nuscenes.utils`` imports the package, whose
-    ``__init__`` loads ``NuScenes`` and scikit-learn, about 2 s in every worker process. The
-    tests compare every written count with the devkit's own ``points_in_box``.
+    ``__init__`` loads ``NuScenes`` and scikit-learn, slow to import in every worker process.
+    The tests compare every written count with the devkit's own ``points_in_box``.
     """
     from scipy.spatial import cKDTree
     pts = points_lidar[:, :3].T                                  # (3, n), as the devkit holds them
@@ -54,7 +49,8 @@ def count_points_in_boxes(points_lidar: np.ndarray, anns: list[dict], ego_pose: 
         center = np.dot(R_cal_inv, center)
         orientation = q_cal_inv * (q_pose_inv * Quaternion(ann["rotation"]))
         w, l, h = np.array(ann["size"])
-        corners = np.vstack((l / 2 * _CORNER_SIGNS[0], w / 2 * _CORNER_SIGNS[1], h / 2 * _CORNER_SIGNS[2]))
+        signs = geometry.DEVKIT_CORNER_SIGNS
+        corners = np.vstack((l / 2 * signs[0], w / 2 * signs[1], h / 2 * signs[2]))
         corners = np.dot(orientation.rotation_matrix, corners)
         for axis in range(3):
             corners[axis, :] = corners[axis, :] + center[axis]
@@ -62,14 +58,7 @@ def count_points_in_boxes(points_lidar: np.ndarray, anns: list[dict], ego_pose: 
         if not len(near):
             counts.append(0)
             continue
-        p1 = corners[:, 0]
-        v = pts[:, np.sort(near)] - p1.reshape((-1, 1))
-        inside = np.ones(v.shape[1], bool)
-        for corner in (4, 1, 3):                                 # the box's x, y and z edges from p1
-            e = corners[:, corner] - p1
-            ev = np.dot(e, v)
-            inside &= (0 <= ev) & (ev <= np.dot(e, e))
-        counts.append(int(inside.sum()))
+        counts.append(int(geometry.points_in_box(pts[:, np.sort(near)], corners).sum()))
     return counts
 
 
@@ -103,8 +92,8 @@ def visible_fraction(actors: list[Actor], poses: list[np.ndarray], cams: list, c
         p = local[..., :3] @ R_T + T_box[:, None, :3, 3]
         n = local[..., 3:] @ R_T
         facing = np.einsum("kmi,kmi->km", n, p - T_gc[:3, 3]) < 0
-        p_cam = geo.apply(geo.invert(T_gc), p.reshape(-1, 3))
-        uv, z = geo.project(cam.K, p_cam)
+        p_cam = geometry.apply(geometry.invert(T_gc), p.reshape(-1, 3))
+        uv, z = geometry.project(cam.K, p_cam)
         W, H = cam.resolution
         with np.errstate(invalid="ignore"):
             inside = (z > 0.1) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)

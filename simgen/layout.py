@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from . import lidarseg as LS
+from . import lidarseg
 from .assets import Parts
 from .config import LayoutConfig
 
@@ -103,9 +103,9 @@ def _along(p: Parts, horizontal: bool, c: float, u0: float, u1: float, off: floa
     """A marking quad along a road: from u0 to u1 along the road, at lateral offset ``off``."""
     length, mid = u1 - u0, (u0 + u1) / 2
     if horizontal:
-        p.box((length, width, 0.01), (mid, c + off, z), color, refl, label=LS.ROAD)
+        p.box((length, width, 0.01), (mid, c + off, z), color, refl, label=lidarseg.ROAD)
     else:
-        p.box((width, length, 0.01), (c + off, mid, z), color, refl, label=LS.ROAD)
+        p.box((width, length, 0.01), (c + off, mid, z), color, refl, label=lidarseg.ROAD)
 
 
 def _road_markings(p: Parts, grid: Grid):
@@ -133,9 +133,9 @@ def _road_markings(p: Parts, grid: Grid):
                     band = (cc + side * (hw + sw / 2))
                     for off in np.arange(-hw + 0.6, hw - 0.3, 1.0):
                         if horizontal:
-                            p.box((sw - 0.6, 0.5, 0.01), (band, c + off, 0.01), WHITE, 0.6, label=LS.ROAD)
+                            p.box((sw - 0.6, 0.5, 0.01), (band, c + off, 0.01), WHITE, 0.6, label=lidarseg.ROAD)
                         else:
-                            p.box((0.5, sw - 0.6, 0.01), (c + off, band, 0.01), WHITE, 0.6, label=LS.ROAD)
+                            p.box((0.5, sw - 0.6, 0.01), (c + off, band, 0.01), WHITE, 0.6, label=lidarseg.ROAD)
 
 
 def _buildings(p: Parts, grid: Grid, rng: np.random.Generator) -> None:
@@ -165,13 +165,13 @@ def _buildings(p: Parts, grid: Grid, rng: np.random.Generator) -> None:
                 mid_u, mid_v = u + width / 2, edge + inward * depth / 2
                 center = (mid_u, mid_v) if along_x else (mid_v, mid_u)
                 ext = (width, depth) if along_x else (depth, width)
-                p.box((*ext, height), (*center, CURB_HEIGHT + height / 2), color, 0.35, label=LS.MANMADE)
+                p.box((*ext, height), (*center, CURB_HEIGHT + height / 2), color, 0.35, label=lidarseg.MANMADE)
                 # Dark window bands on the street facade.
                 face = edge - inward * 0.03
                 for zb in np.arange(CURB_HEIGHT + 3.0, height - 1.0, 3.2):
                     wc = (mid_u, face) if along_x else (face, mid_u)
                     wext = (width * 0.85, 0.08) if along_x else (0.08, width * 0.85)
-                    p.box((*wext, 1.3), (*wc, zb), (50, 60, 75), 0.1, label=LS.MANMADE)
+                    p.box((*wext, 1.3), (*wc, zb), (50, 60, 75), 0.1, label=lidarseg.MANMADE)
                 u += width + rng.uniform(*cfg.building_gap)
 
 
@@ -194,17 +194,17 @@ def _clutter(p: Parts, grid: Grid, rng: np.random.Generator) -> np.ndarray:
                         z0 = CURB_HEIGHT
                         if kind == 0:    # a street light
                             hgt = rng.uniform(5.0, 8.0)
-                            p.cylinder((x, y, z0), (x, y, z0 + hgt), 0.1, (90, 95, 100), 0.45, label=LS.MANMADE)
+                            p.cylinder((x, y, z0), (x, y, z0 + hgt), 0.1, (90, 95, 100), 0.45, label=lidarseg.MANMADE)
                             boxes.append((x, y, z0 + hgt / 2, 0.3, 0.3, hgt, 0.0))
                         elif kind == 1:  # a tree: trunk and canopy
                             hgt = rng.uniform(2.2, 3.2)
                             r = rng.uniform(1.2, 2.2)
-                            p.cylinder((x, y, z0), (x, y, z0 + hgt), 0.16, (95, 70, 50), 0.3, label=LS.VEGETATION)
+                            p.cylinder((x, y, z0), (x, y, z0 + hgt), 0.16, (95, 70, 50), 0.3, label=lidarseg.VEGETATION)
                             green = (rng.integers(40, 80), rng.integers(100, 150), rng.integers(40, 70))
-                            p.sphere((x, y, z0 + hgt + r * 0.8), r, green, 0.4, label=LS.VEGETATION)
+                            p.sphere((x, y, z0 + hgt + r * 0.8), r, green, 0.4, label=lidarseg.VEGETATION)
                             boxes.append((x, y, z0 + hgt / 2, 0.4, 0.4, hgt, 0.0))
                         else:            # a bin
-                            p.box((0.5, 0.5, 0.9), (x, y, z0 + 0.45), (40, 90, 50), 0.3, label=LS.MANMADE)
+                            p.box((0.5, 0.5, 0.9), (x, y, z0 + 0.45), (40, 90, 50), 0.3, label=lidarseg.MANMADE)
                             boxes.append((x, y, z0 + 0.45, 0.6, 0.6, 0.9, 0.0))
     return np.array(boxes, dtype=np.float64).reshape(-1, 7)
 
@@ -214,19 +214,19 @@ def build_static(grid: Grid, rng: np.random.Generator) -> tuple[trimesh.Trimesh,
     W, H = grid.extent
     p = Parts()
     # The road surface, its top at z = 0.
-    p.box((W, H, 0.02), (MAP_PAD + W / 2, MAP_PAD + H / 2, -0.01), ASPHALT, 0.12, label=LS.ROAD)
+    p.box((W, H, 0.02), (MAP_PAD + W / 2, MAP_PAD + H / 2, -0.01), ASPHALT, 0.12, label=lidarseg.ROAD)
     sw = grid.cfg.sidewalk_width
     lawn = rng.random() < 0.5
     for x0, x1, y0, y1 in grid.blocks:
         p.box((x1 - x0, y1 - y0, CURB_HEIGHT), ((x0 + x1) / 2, (y0 + y1) / 2, CURB_HEIGHT / 2), SIDEWALK, 0.3,
-              label=LS.SIDEWALK)
+              label=lidarseg.SIDEWALK)
         if x1 - x0 > 2 * sw + 1 and y1 - y0 > 2 * sw + 1:
             color = (78, 112, 62) if lawn else (140, 135, 125)
             # 5 mm short of the lot edge on every side: the buildings' street faces stand on that
             # edge, and a slab side in the same plane z-fights with them (a flickering pixel row).
             p.box((x1 - x0 - 2 * sw - 0.01, y1 - y0 - 2 * sw - 0.01, 0.01),
                   ((x0 + x1) / 2, (y0 + y1) / 2, CURB_HEIGHT + 0.005), color, 0.25,
-                  label=LS.TERRAIN if lawn else LS.PLAZA)
+                  label=lidarseg.TERRAIN if lawn else lidarseg.PLAZA)
     _road_markings(p, grid)
     _buildings(p, grid, rng)
     clutter = _clutter(p, grid, rng)

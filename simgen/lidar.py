@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from . import geometry as geo
-from . import lidar_kernels as K
-from . import lidarseg as LS
+from . import geometry
+from . import lidar_kernels
+from . import lidarseg
 from .config import LidarConfig
 from .rig import T_ego_from_lidar
 from .world import CATEGORY, World
@@ -127,7 +127,7 @@ class RayTarget:
         With ``tfar`` (m,), a hit farther than it counts as a miss.
         """
         tri = self.first_triangles(origins, dirs, tfar)
-        dist, cos = K.plane_hits(tri, origins, dirs, self.normals, self.plane,
+        dist, cos = lidar_kernels.plane_hits(tri, origins, dirs, self.normals, self.plane,
                                  np.zeros(0) if tfar is None else tfar)
         return dist, tri, cos
 
@@ -180,7 +180,7 @@ class LidarScanner:
         # The lasers are fixed in the sensor, which is mounted tilted by about 1.4 deg: take the
         # pattern's azimuths relative to the mount's yaw, then apply the whole mount rotation.
         R = self.T_ego_from_lidar[:3, :3]
-        Rz = geo.pose_2d(0.0, 0.0, np.arctan2(R[1, 0], R[0, 0]))[:3, :3]
+        Rz = geometry.pose_2d(0.0, 0.0, np.arctan2(R[1, 0], R[0, 0]))[:3, :3]
         self.dir_ego = d @ (R @ Rz.T).T
         moving = world.speed.max(axis=1) > 0
         annotated = np.array([a.annotate for a in world.actors])
@@ -201,7 +201,7 @@ class LidarScanner:
         self.static_label = np.concatenate([sm.metadata["lidarseg"], np.zeros(len(statics.faces), np.uint8)])
         self.label_of_id = np.zeros(1 + max(a.id for a in world.actors), np.uint8)
         for a in world.actors:
-            self.label_of_id[a.id] = LS.INDEX[CATEGORY[a.cls]]
+            self.label_of_id[a.id] = lidarseg.INDEX[CATEGORY[a.cls]]
         self.sensor_height = float(self.T_ego_from_lidar[2, 3])
         self.ring_elevation = np.deg2rad(ELEVATIONS_DEG)
         self.mover_ids = np.array([world.actors[i].id for i in self.moving_idx], np.int32)
@@ -223,7 +223,7 @@ class LidarScanner:
         """The rays of the sweep ending at ``t_end``: firing times (m,), and origins and unit
         directions (m, 3) in the global frame."""
         t_col, origin_col, yaw = self._column_poses(t_end)
-        return (np.repeat(t_col, N_BEAMS),) + K.sweep_rays(origin_col, yaw, self.dir_ego, N_BEAMS)
+        return (np.repeat(t_col, N_BEAMS),) + lidar_kernels.sweep_rays(origin_col, yaw, self.dir_ego, N_BEAMS)
 
     def _map(self, fn, n: int) -> list:
         """``fn(slice)`` over contiguous chunks of ``range(n)``, in threads; results in order."""
@@ -234,7 +234,7 @@ class LidarScanner:
 
     def _poses(self, idx: np.ndarray, t: float) -> np.ndarray:
         b = self.world.boxes_at(t)[idx]
-        return geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
+        return geometry.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
 
     def _build_atlas(self) -> None:
         """One BVH of every moving actor's mesh in its box frame, each at its own offset."""
@@ -274,7 +274,7 @@ class LidarScanner:
         centre = np.ascontiguousarray(boxes[:, :3])
 
         def hits(chunk):
-            o_local, d_local = K.into_box_frames(rays[chunk], owner[chunk], origin, dirs, centre, c_box, s_box,
+            o_local, d_local = lidar_kernels.into_box_frames(rays[chunk], owner[chunk], origin, dirs, centre, c_box, s_box,
                                                  self.atlas_offset)
             return self.atlas.first_hits(o_local, d_local, tfar=dist[rays[chunk]])
 
@@ -333,7 +333,7 @@ class LidarScanner:
         """Cast one sweep ending at ``t_end`` (s). ``rng`` draws the range noise."""
         cfg = self.cfg
         t_col, origin_col, yaw = self._column_poses(t_end)
-        origin, dirs = K.sweep_rays(origin_col, yaw, self.dir_ego, N_BEAMS)
+        origin, dirs = lidar_kernels.sweep_rays(origin_col, yaw, self.dir_ego, N_BEAMS)
         dist, tri, cos_inc = _join(self._map(lambda c: self.static.first_hits(origin[c], dirs[c]), len(dirs)))
         face = np.maximum(tri, 0)             # a miss reads face 0; its infinite distance drops it
         rho = np.take(self.static.reflectivity, face)
@@ -350,7 +350,7 @@ class LidarScanner:
         origin_lidar = (origin_col - T_lidar[:3, 3]) @ R_lidar_from_global.T
 
         def points(chunk):
-            return K.returns(chunk.start, dist[chunk], noise[chunk], rho[chunk], cos_inc[chunk], ids[chunk],
+            return lidar_kernels.returns(chunk.start, dist[chunk], noise[chunk], rho[chunk], cos_inc[chunk], ids[chunk],
                              label[chunk], dirs, self.ring, t_col, origin_lidar, R_lidar_from_global, cfg.min_range,
                              cfg.max_range, cfg.min_return, cfg.intensity_ref_range, N_BEAMS)
 

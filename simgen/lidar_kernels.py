@@ -1,12 +1,11 @@
 """Compiled per-ray kernels of the lidar sweep (numba).
 
-A sweep is 34,912 rays. After Embree's query (about 10 ms), what is left is short arithmetic per
-ray: the hit distance on the reported triangle's plane, the move into each actor's box frame,
-and the noise, detection threshold and frame change of every return. In numpy that was about 15
-passes over the rays, each allocating an array and most no longer than the call around it:
-about 10 ms, more than the query. Here each is one loop, compiled with numba (``cache=True``:
-compiled once per checkout, then loaded), that reads the inputs once and writes the outputs
-once. ``nogil=True``, so the scanner's threads run them in parallel on ray chunks.
+After Embree's query, what is left of a sweep is short arithmetic per ray: the hit distance on
+the reported triangle's plane, the move into each actor's box frame, and the noise, detection
+threshold and frame change of every return. In numpy that is many passes over the rays, each
+allocating an array, which together cost more than the query. Here each is one loop, compiled
+with numba (``cache=True``: compiled once per checkout, then loaded), that reads the inputs once
+and writes the outputs once. ``nogil=True``, so the scanner's threads run them in parallel on ray chunks.
 
 Plain IEEE arithmetic in a fixed order (no ``fastmath``): the same inputs give the same bytes.
 ``error_model="numpy"``: a division by zero gives inf or nan, as in numpy, instead of raising.

@@ -1,9 +1,10 @@
 """`simgen make`: the scenes of a dataset in worker processes or Ray tasks, with a progress bar,
 resumable.
 
-This module and what it imports stay light (no trimesh, pyrender or Embree): the coordinating
-process only checks the dataroot, hands out scene indices and merges the tables. Each worker
-imports :mod:`simgen.pipeline` itself.
+Either backend makes each scene in memory (:func:`simgen.pipeline.scene_records`) and ships its
+:class:`~simgen.writer.SceneRecords` back; this process writes each file once, the scene's table
+part last, then merges the tables. This module and what it imports stay light (no trimesh,
+pyrender or Embree): each worker imports :mod:`simgen.pipeline` itself.
 """
 from __future__ import annotations
 
@@ -16,29 +17,29 @@ from contextlib import closing
 from pathlib import Path
 from typing import Iterator
 
-from . import degrade as D
-from . import writer as W
-from .config import ConfigError
-from .settings import MakeSettings, scene_rng
+from . import writer
+from .degrade import visibility_of
+from .errors import ConfigError
+from .settings import MakeSettings, degradation_stream
+from .writer import SceneRecords
 
 
 def _worker_init(gl):
-    # llvmpipe keeps its default thread count in every worker: measured, 2 workers with 2 render
-    # threads each finish sooner here than with 1 each (33.8 s against 36.7 s, 4 scenes).
+    # llvmpipe keeps its default render threads in every worker: one each made the pool slower.
     if gl:
         os.environ["PYOPENGL_PLATFORM"] = gl
 
 
-def _task(args):
-    from .pipeline import generate_scene
-    s, dataroot, idx, threads = args
-    return idx, generate_scene(s, dataroot, idx, threads)
+def _task(args) -> SceneRecords:
+    from .pipeline import scene_records
+    s, idx, threads = args
+    return scene_records(s, idx, threads)
 
 
 def check_resume(s: MakeSettings, dataroot: Path) -> list[int]:
     """Scenes still to do. Refuses a dataroot that holds parts made with other settings."""
-    settings_file = dataroot / W.PARTS_DIR / "settings.json"
-    fp = json.loads(W.dump_json(s.fingerprint()))
+    settings_file = dataroot / writer.PARTS_DIR / "settings.json"
+    fp = json.loads(writer.dump_json(s.fingerprint()))
     if settings_file.exists():
         try:
             old = json.loads(settings_file.read_text())
@@ -51,8 +52,8 @@ def check_resume(s: MakeSettings, dataroot: Path) -> list[int]:
             raise ConfigError(f"{dataroot}: holds a dataset made with other settings (differing: "
                               f"{', '.join(differ[:6])}{', ...' if len(differ) > 6 else ''}); "
                               f"use another --out or delete it")
-    W.write_atomic(settings_file, W.dump_json(fp))
-    return [i for i in range(s.n_scenes) if not W.part_path(dataroot, i).exists()]
+    writer.write_atomic(settings_file, writer.dump_json(fp))
+    return [i for i in range(s.n_scenes) if not writer.part_path(dataroot, i).exists()]
 
 
 def _flatten(d: dict, prefix: str = "") -> dict:
@@ -71,12 +72,12 @@ def write_degradation_record(s: MakeSettings, dataroot: Path) -> None:
     visibility, the dropped rings per scene, and the pairing contract. Written for clean sets
     too (all off), so that a set always says what it is."""
     d = s.cfg.degrade
-    rings = {f"scene-{i:04d}": [int(r) for r in D.choose_rings(d.beam_drop, scene_rng(s.seed, i, 2))]
+    rings = {f"scene-{i:04d}": [int(r) for r in degradation_stream(s, i)[0]]
              for i in range(s.n_scenes)} if d.beam_drop else {}
     record = {
         "settings": dataclasses.asdict(d),
         "fog_alpha_per_m": d.alpha,
-        "fog_visibility_m": D.visibility_of(d.alpha) if d.alpha > 0 else None,
+        "fog_visibility_m": visibility_of(d.alpha) if d.alpha > 0 else None,
         "failed_sensors": list(d.dropped),
         "dropped_rings": rings,
         "preset": s.cfg.name,
@@ -87,7 +88,7 @@ def write_degradation_record(s: MakeSettings, dataroot: Path) -> None:
                    "occluders are part of the world: the same objects, tracks and poses as the clean run, but "
                    "sample_annotation visibility and num_lidar_pts reflect the occluders"),
     }
-    W.write_atomic(dataroot / s.version / "degradation.json", W.dump_json(record))
+    writer.write_atomic(dataroot / s.version / "degradation.json", writer.dump_json(record))
 
 
 def make(s: MakeSettings, dataroot: Path, workers: int, progress: bool = True, ray: str | None = None) -> dict:
@@ -110,10 +111,12 @@ def make(s: MakeSettings, dataroot: Path, workers: int, progress: bool = True, r
         done_samples = 0
         bar = tqdm(total=s.n_scenes, initial=s.n_scenes - len(todo), unit="scene", disable=not progress,
                    desc="simgen make", dynamic_ncols=True)
-        scenes = cluster.scenes(s, dataroot, todo) if cluster else _pool_scenes(s, dataroot, todo, workers)
+        scenes = cluster.scenes(s, todo) if cluster else _pool_scenes(s, todo, workers)
         with closing(scenes) as results:
-            for _idx, n in results:
-                done_samples += n
+            for records in results:
+                writer.write_scene(dataroot, records)
+                done_samples += records.n_samples
+                del records      # one finished scene at a time is held here
                 bar.update(1)
                 bar.set_postfix(samples_per_s=f"{done_samples / (time.perf_counter() - start):.2f}")
     finally:
@@ -121,19 +124,18 @@ def make(s: MakeSettings, dataroot: Path, workers: int, progress: bool = True, r
             bar.close()
         if cluster is not None:
             cluster.close()
-    counts = W.merge(dataroot, s.version, s.n_scenes, s.val_fraction)
+    counts = writer.merge(dataroot, s.version, s.n_scenes, s.val_fraction)
     write_degradation_record(s, dataroot)
     return {"scenes": s.n_scenes, "generated_scenes": len(todo), "samples": counts["sample"],
             "seconds": time.perf_counter() - start, "tables": counts}
 
 
-def _pool_scenes(s: MakeSettings, dataroot: Path, todo: list[int], workers: int) -> Iterator[tuple[int, int]]:
-    """The scenes ``todo`` on a local process pool (each worker writes its scene's files into
-    ``dataroot``); yields ``(scene index, samples)`` in completion order."""
+def _pool_scenes(s: MakeSettings, todo: list[int], workers: int) -> Iterator[SceneRecords]:
+    """The scenes ``todo`` made on a local process pool; yields their records in completion order."""
     n_proc = max(1, min(workers, len(todo)))
     # The cores left to each worker process cast its lidar rays in parallel.
     threads = max(1, len(os.sched_getaffinity(0)) // n_proc)
-    tasks = [(s, dataroot, i, threads) for i in todo]
+    tasks = [(s, i, threads) for i in todo]
     if n_proc == 1:
         yield from map(_task, tasks)
         return
@@ -142,8 +144,7 @@ def _pool_scenes(s: MakeSettings, dataroot: Path, todo: list[int], workers: int)
     try:
         yield from pool.imap_unordered(_task, tasks)
     finally:
-        # Every result is in (or the run is being abandoned): the workers hold nothing
-        # unwritten, since a scene's part file is its last, atomic write. Stopping them
-        # spares the wait for their interpreters to finalise (about 0.7 s with 2 workers).
+        # Every result is in (or the run is being abandoned): the workers write nothing, so
+        # stopping them loses nothing and spares the wait for their interpreters to finalise.
         pool.terminate()
         pool.join()

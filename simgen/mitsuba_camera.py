@@ -10,15 +10,17 @@ A second pass, in which every shape emits its
 actor id and nothing else is lit, gives the per-pixel actor id, used to check that both renderers
 agree geometrically.
 
-Variant: ``llvm_ad_rgb`` when LLVM 19 is available (REFERENCE.md), else ``scalar_rgb``, which
-works out of the box. It costs seconds per image, so it is an option for small photoreal sets.
+Variant: ``llvm_ad_rgb`` when libLLVM 19 can be loaded, else ``scalar_rgb``, which works out of
+the box (Mitsuba 3 documentation, "Variants": the ``llvm_*`` variants compile their kernels
+through Dr.Jit's LLVM backend, which loads a libLLVM shared library at run time). It costs
+seconds per image, so it is an option for small photoreal sets.
 
 Why a face attribute and not vertex colours: the worlds hold sliver triangles (the 1 cm sides of
 the lane markings and road boxes, 66 m long). Mitsuba interpolates a vertex attribute from
 barycentric coordinates it recomputes in float32 from the hit point, through a Gram determinant
-``|e1|^2 |e2|^2 - (e1 . e2)^2`` that cancels to zero on such a sliver (66^4 against 66^2 * 1e-4):
-the colour, hence the sample, was NaN there (about 2,000 samples and 0.1-0.6% black pixels per
-640x360 image at 16 spp). A face attribute is looked up by the primitive index alone.
+``|e1|^2 |e2|^2 - (e1 . e2)^2`` that cancels to zero on such a sliver (66^4 against 66^2 * 1e-4),
+so the colour, hence the sample, is NaN there: black pixels. A face attribute is looked up by
+the primitive index alone.
 
 Mitsuba's log goes to stderr (:func:`_log_to_stderr`), so that a caller's stdout stays its own
 (``scripts/bench.py --json`` prints JSON there).
@@ -33,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from . import geometry as geo
+from . import geometry
 from .config import CameraConfig
 from .rig import Camera
 from .world import World
@@ -134,7 +136,7 @@ class MitsubaRenderer:
             "fov_axis": "x",
             "fov": float(np.degrees(2 * np.arctan(W / (2 * K[0, 0])))),
             # Mitsuba measures the offset the other way round (the image content moves opposite to
-            # the principal point): measured, +cx shifts objects left by 2 cx without the minus.
+            # the principal point): without the minus, +cx shifts objects left by 2 cx.
             "principal_point_offset_x": float((W / 2 - K[0, 2]) / W),
             "principal_point_offset_y": float((H / 2 - K[1, 2]) / H),
             "near_clip": 0.1,
@@ -198,5 +200,5 @@ class MitsubaRenderer:
 def actor_poses_at(world: World, t: float) -> dict[int, np.ndarray]:
     """actor id -> (4, 4) T_global_from_box at time ``t`` (annotated actors)."""
     b = world.boxes_at(t)
-    poses = geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
+    poses = geometry.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
     return {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate}

@@ -10,9 +10,11 @@ two objects ever intersect, by construction, and the tests check it independentl
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from . import geometry as geo
+from . import geometry
 from .traffic import Plan
 
 # Per class: (comfortable braking b, max acceleration, standstill gap s0, extra look-ahead).
@@ -20,6 +22,40 @@ DYNAMICS = {"pedestrian": (2.0, 1.0, 0.3, 0.8), "bicycle": (3.0, 1.5, 1.0, 2.0),
             "motorcycle": (4.0, 2.5, 1.5, 3.0)}
 VEHICLE_DYNAMICS = (4.0, 2.5, 2.0, 3.0)
 HARD_MARGIN = 0.05   # metres of clearance the hard constraint keeps between footprints
+
+
+@dataclass(frozen=True)
+class Paths:
+    """The plans as arrays: n actors on straight paths (global frame)."""
+    origin: np.ndarray        # (n, 2) path start
+    yaw: np.ndarray           # (n,) heading
+    u: np.ndarray             # (n, 2) unit direction of travel
+    size: np.ndarray          # (n, 3) l, w, h
+    length: np.ndarray        # (n,) path length
+    v_des: np.ndarray         # (n,) desired speed
+    priority: np.ndarray      # (n,) lower goes first
+    stop: np.ndarray          # (n, 2) planned stop [t_start, t_end), inf when none
+    moving: np.ndarray        # (n,) bool: v_des > 0
+    b_comf: np.ndarray        # (n,) comfortable braking (m/s^2)
+    a_max: np.ndarray         # (n,) maximum acceleration (m/s^2)
+    s0_gap: np.ndarray        # (n,) standstill gap (m)
+    extra: np.ndarray         # (n,) look-ahead beyond the braking distance (m)
+
+    @classmethod
+    def of(cls, plans: list[Plan]) -> "Paths":
+        yaw = np.array([p.heading for p in plans])
+        dyn_params = np.array([DYNAMICS.get(p.actor.cls, VEHICLE_DYNAMICS) for p in plans])
+        return cls(origin=np.array([p.origin for p in plans]), yaw=yaw, u=np.stack([np.cos(yaw), np.sin(yaw)], 1),
+                   size=np.array([p.actor.size for p in plans]), length=np.array([p.length for p in plans]),
+                   v_des=np.array([p.v_des for p in plans]), priority=np.array([p.priority for p in plans]),
+                   stop=np.array([p.stop if p.stop else (np.inf, np.inf) for p in plans]),
+                   moving=np.array([p.v_des > 0 for p in plans]), b_comf=dyn_params[:, 0], a_max=dyn_params[:, 1],
+                   s0_gap=dyn_params[:, 2], extra=dyn_params[:, 3])
+
+    def boxes_at(self, s: np.ndarray) -> np.ndarray:
+        """(n, 7) footprints at arc lengths ``s`` (n,)."""
+        pos = self.origin + s[:, None] * self.u
+        return np.concatenate([pos, np.zeros((len(s), 1)), self.size, self.yaw[:, None]], 1)
 
 
 def simulate(plans: list[Plan], static_boxes: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -30,84 +66,82 @@ def simulate(plans: list[Plan], static_boxes: np.ndarray, times: np.ndarray) -> 
     xy : (n, K, 2) box centres, global frame.
     speed : (n, K) speed along the path (m/s), central differences of the positions.
     """
-    n, K = len(plans), len(times)
+    paths = Paths.of(plans)
     dt = float(times[1] - times[0])
-    origin = np.array([p.origin for p in plans])
-    yaw = np.array([p.heading for p in plans])
-    u = np.stack([np.cos(yaw), np.sin(yaw)], 1)
-    size = np.array([p.actor.size for p in plans])
-    length = np.array([p.length for p in plans])
-    v_des = np.array([p.v_des for p in plans])
-    prio = np.array([p.priority for p in plans])
-    stop = np.array([p.stop if p.stop else (np.inf, np.inf) for p in plans])
-    dyn = np.array([p.v_des > 0 for p in plans])
-    dyn_params = np.array([DYNAMICS.get(p.actor.cls, VEHICLE_DYNAMICS) for p in plans])
-    b_comf, a_max, s0_gap, extra = dyn_params.T
-
     s = np.array([p.s0 for p in plans], dtype=np.float64)
-    v = np.where(dyn, v_des, 0.0)
-    S = np.zeros((n, K))
+    v = np.where(paths.moving, paths.v_des, 0.0)
+    S = np.zeros((len(plans), len(times)))
     S[:, 0] = s
-    idx_dyn = np.nonzero(dyn)[0]
-
-    def boxes_for(s_arr):
-        pos = origin + s_arr[:, None] * u
-        return np.concatenate([pos, np.zeros((n, 1)), size, yaw[:, None]], 1)
-
-    for k in range(K - 1):
-        t = times[k]
-        boxes = boxes_for(s)
-        obstacles = np.concatenate([boxes, static_boxes])
-        # Corridor ahead of each moving actor: its braking distance plus a margin.
-        D = extra + v * v / (2.0 * b_comf) + v * 0.5
-        cor = boxes.copy()
-        cor[:, :2] += u * (size[:, :1] / 2 + D[:, None] / 2)
-        cor[:, 3] = D
-        cor[:, 4] = size[:, 1] + 0.3
-        cor = cor[idx_dyn]
-        ci, oj = geo.near_pairs(cor, obstacles)
-        ci_g = idx_dyn[ci]
-        keep = ci_g != oj
-        ci, oj, ci_g = ci[keep], oj[keep], ci_g[keep]
-        hit = geo.bev_overlap_pairwise(cor[ci], obstacles[oj])
-        ci, oj, ci_g = ci[hit], oj[hit], ci_g[hit]
-        # Mutual waiting: i ignores j when j also sees i and i has the lower priority number.
-        pair_key = ci_g * (n + len(static_boxes)) + oj
-        rev_key = oj * (n + len(static_boxes)) + ci_g
-        mutual = (oj < n) & np.isin(rev_key, pair_key)
-        ignore = mutual & (prio[ci_g] < prio[np.minimum(oj, n - 1)])
-        ci_g, oj = ci_g[~ignore], oj[~ignore]
-        # Gap from i's front to the near side of obstacle j, along i's heading.
-        front = boxes[ci_g, :2] + u[ci_g] * size[ci_g, :1] / 2
-        ob = obstacles[oj]
-        rel = ob[:, 6] - yaw[ci_g]
-        half = np.abs(ob[:, 3] / 2 * np.cos(rel)) + np.abs(ob[:, 4] / 2 * np.sin(rel))
-        gap_pair = np.einsum("kd,kd->k", ob[:, :2] - front, u[ci_g]) - half
-        gap = np.full(n, np.inf)
-        np.minimum.at(gap, ci_g, gap_pair)
-        target = np.where((t >= stop[:, 0]) & (t < stop[:, 1]), 0.0, v_des)
-        v_safe = np.sqrt(2.0 * b_comf * np.maximum(gap - s0_gap, 0.0))
-        target = np.minimum(target, v_safe)
-        v_new = np.clip(target, v - 2.0 * b_comf * dt, v + a_max * dt).clip(min=0.0)
-        s_new = np.minimum(s + v_new * dt, np.maximum(length - size[:, 0] / 2, s))
-        # Hard constraint: undo moves that would overlap anything (repeat until consistent).
-        while True:
-            moved = np.nonzero(s_new != s)[0]
-            if len(moved) == 0:
-                break
-            nb = boxes_for(s_new)
-            all_boxes = np.concatenate([nb, static_boxes])
-            mi, oj = geo.near_pairs(nb[moved], all_boxes, pad=2 * HARD_MARGIN)
-            mi_g = moved[mi]
-            keep = mi_g != oj
-            mi_g, oj = mi_g[keep], oj[keep]
-            bad = geo.bev_overlap_pairwise(nb[mi_g], all_boxes[oj], HARD_MARGIN)
-            if not bad.any():
-                break
-            s_new[mi_g[bad]] = s[mi_g[bad]]
+    for k in range(len(times) - 1):
+        v_new = _next_speed(paths, s, v, float(times[k]), static_boxes, dt)
+        s_new = np.minimum(s + v_new * dt, np.maximum(paths.length - paths.size[:, 0] / 2, s))
+        s_new = _undo_overlapping_moves(paths, s, s_new, static_boxes)
         v = (s_new - s) / dt
         s = s_new
         S[:, k + 1] = s
-    xy = origin[:, None, :] + S[..., None] * u[:, None, :]
+    xy = paths.origin[:, None, :] + S[..., None] * paths.u[:, None, :]
     speed = np.gradient(S, dt, axis=1)
     return xy, speed
+
+
+def _next_speed(paths: Paths, s: np.ndarray, v: np.ndarray, t: float, static_boxes: np.ndarray,
+                dt: float) -> np.ndarray:
+    """(n,) speeds for the next step: the desired speed (0 during a planned stop), capped by what
+    still stops short of the nearest footprint in the corridor ahead, within braking and
+    acceleration limits."""
+    n = len(s)
+    u, size, yaw = paths.u, paths.size, paths.yaw
+    boxes = paths.boxes_at(s)
+    obstacles = np.concatenate([boxes, static_boxes])
+    idx_dyn = np.nonzero(paths.moving)[0]
+    # Corridor ahead of each moving actor: its braking distance plus a margin.
+    D = paths.extra + v * v / (2.0 * paths.b_comf) + v * 0.5
+    cor = boxes.copy()
+    cor[:, :2] += u * (size[:, :1] / 2 + D[:, None] / 2)
+    cor[:, 3] = D
+    cor[:, 4] = size[:, 1] + 0.3
+    cor = cor[idx_dyn]
+    ci, oj = geometry.near_pairs(cor, obstacles)
+    ci_g = idx_dyn[ci]
+    keep = ci_g != oj
+    ci, oj, ci_g = ci[keep], oj[keep], ci_g[keep]
+    hit = geometry.bev_overlap_pairwise(cor[ci], obstacles[oj])
+    ci, oj, ci_g = ci[hit], oj[hit], ci_g[hit]
+    # Mutual waiting: i ignores j when j also sees i and i has the lower priority number.
+    pair_key = ci_g * (n + len(static_boxes)) + oj
+    rev_key = oj * (n + len(static_boxes)) + ci_g
+    mutual = (oj < n) & np.isin(rev_key, pair_key)
+    ignore = mutual & (paths.priority[ci_g] < paths.priority[np.minimum(oj, n - 1)])
+    ci_g, oj = ci_g[~ignore], oj[~ignore]
+    # Gap from i's front to the near side of obstacle j, along i's heading.
+    front = boxes[ci_g, :2] + u[ci_g] * size[ci_g, :1] / 2
+    ob = obstacles[oj]
+    rel = ob[:, 6] - yaw[ci_g]
+    half = np.abs(ob[:, 3] / 2 * np.cos(rel)) + np.abs(ob[:, 4] / 2 * np.sin(rel))
+    gap_pair = np.einsum("kd,kd->k", ob[:, :2] - front, u[ci_g]) - half
+    gap = np.full(n, np.inf)
+    np.minimum.at(gap, ci_g, gap_pair)
+    target = np.where((t >= paths.stop[:, 0]) & (t < paths.stop[:, 1]), 0.0, paths.v_des)
+    v_safe = np.sqrt(2.0 * paths.b_comf * np.maximum(gap - paths.s0_gap, 0.0))
+    target = np.minimum(target, v_safe)
+    return np.clip(target, v - 2.0 * paths.b_comf * dt, v + paths.a_max * dt).clip(min=0.0)
+
+
+def _undo_overlapping_moves(paths: Paths, s: np.ndarray, s_new: np.ndarray, static_boxes: np.ndarray) -> np.ndarray:
+    """The hard constraint: moves from ``s`` to ``s_new`` (n,) that would make footprints
+    overlap are not taken, repeated until no taken move does."""
+    s_new = s_new.copy()
+    while True:
+        moved = np.nonzero(s_new != s)[0]
+        if len(moved) == 0:
+            return s_new
+        nb = paths.boxes_at(s_new)
+        all_boxes = np.concatenate([nb, static_boxes])
+        mi, oj = geometry.near_pairs(nb[moved], all_boxes, pad=2 * HARD_MARGIN)
+        mi_g = moved[mi]
+        keep = mi_g != oj
+        mi_g, oj = mi_g[keep], oj[keep]
+        bad = geometry.bev_overlap_pairwise(nb[mi_g], all_boxes[oj], HARD_MARGIN)
+        if not bad.any():
+            return s_new
+        s_new[mi_g[bad]] = s[mi_g[bad]]

@@ -15,8 +15,8 @@ import dataclasses
 import numpy as np
 import trimesh
 
-from . import geometry as geo
-from . import lidarseg as LS
+from . import geometry
+from . import lidarseg
 from .assets import Parts
 from .layout import CURB_HEIGHT, Grid
 from .world import World
@@ -31,24 +31,24 @@ def _kinds(p: Parts, kind: int, x: float, y: float, yaw: float, rng: np.random.G
     if kind == 0:    # a van: tall box with a darker windscreen band
         l, w, h = rng.uniform(5.0, 6.0), rng.uniform(2.0, 2.2), rng.uniform(2.3, 2.7)
         color = tuple(int(c) for c in rng.integers(150, 240, 3))
-        p.box((l, w, h - 0.35), (x, y, 0.35 + (h - 0.35) / 2), color, 0.5, yaw, label=LS.CAR)
+        p.box((l, w, h - 0.35), (x, y, 0.35 + (h - 0.35) / 2), color, 0.5, yaw, label=lidarseg.CAR)
         p.box((0.1, w * 0.9, 0.6), (x + np.cos(yaw) * l / 2, y + np.sin(yaw) * l / 2, h - 0.6), (30, 35, 40), 0.1, yaw,
-              label=LS.CAR)
+              label=lidarseg.CAR)
         return (x, y, h / 2, l, w, h, yaw)
     if kind == 1:    # a hedge
         l, w, h = rng.uniform(4.0, 7.0), rng.uniform(0.8, 1.2), rng.uniform(1.2, 1.8)
         p.box((l, w, h), (x, y, CURB_HEIGHT + h / 2), (50, int(rng.integers(90, 130)), 45), 0.35, yaw,
-              label=LS.VEGETATION)
+              label=lidarseg.VEGETATION)
         return (x, y, CURB_HEIGHT + h / 2, l, w, h, yaw)
     if kind == 2:    # a tree with a low, wide canopy
         hgt, r = rng.uniform(1.4, 2.0), rng.uniform(1.6, 2.4)
-        p.cylinder((x, y, CURB_HEIGHT), (x, y, CURB_HEIGHT + hgt), 0.2, (95, 70, 50), 0.3, label=LS.VEGETATION)
+        p.cylinder((x, y, CURB_HEIGHT), (x, y, CURB_HEIGHT + hgt), 0.2, (95, 70, 50), 0.3, label=lidarseg.VEGETATION)
         p.sphere((x, y, CURB_HEIGHT + hgt + r * 0.7), r, (45, int(rng.integers(100, 140)), 50), 0.4,
-                 label=LS.VEGETATION)
+                 label=lidarseg.VEGETATION)
         return (x, y, CURB_HEIGHT + hgt / 2, 0.5, 0.5, hgt, 0.0)
     # a thick pole / pillar
     hgt = rng.uniform(3.0, 5.0)
-    p.cylinder((x, y, CURB_HEIGHT), (x, y, CURB_HEIGHT + hgt), 0.35, (120, 120, 125), 0.45, label=LS.MANMADE)
+    p.cylinder((x, y, CURB_HEIGHT), (x, y, CURB_HEIGHT + hgt), 0.35, (120, 120, 125), 0.45, label=lidarseg.MANMADE)
     return (x, y, CURB_HEIGHT + hgt / 2, 0.8, 0.8, hgt, 0.0)
 
 
@@ -112,9 +112,9 @@ def _collides(box: np.ndarray, world: World, placed: list[np.ndarray]) -> bool:
         b[:, :2] = xy
         b[:, 3:5] = np.repeat(sizes[idx, :2], K, axis=0)
         b[:, 6] = np.repeat(world.yaw[idx], K)
-        if geo.bev_overlap_pairwise(np.repeat(box[None], len(b), 0), b, margin=MARGIN).any():
+        if geometry.bev_overlap_pairwise(np.repeat(box[None], len(b), 0), b, margin=MARGIN).any():
             return True
     others = np.concatenate([world.static_boxes, np.array(placed).reshape(-1, 7)])
     if len(others):
-        return bool(geo.bev_overlap_pairwise(np.repeat(box[None], len(others), 0), others, margin=MARGIN).any())
+        return bool(geometry.bev_overlap_pairwise(np.repeat(box[None], len(others), 0), others, margin=MARGIN).any())
     return False

@@ -1,35 +1,41 @@
-"""One scene: world -> frames -> sensors -> labels -> its part file (``generate_scene``).
+"""One scene, a pure function of (settings, scene index): world -> frames -> :class:`SceneRecords`.
 
-Every scene is a pure function of (settings, global seed, scene index): its generator is seeded
-with ``SeedSequence([seed, scene_index])``, so the bytes do not depend on ``--workers`` or on
-which scenes were already done when a run was resumed. :mod:`simgen.make` runs the scenes in
-worker processes.
+The scene's random streams are seeded with ``SeedSequence([seed, scene_index, stream])``, so its
+bytes do not depend on ``--workers``, on the backend, or on which scenes were already done when
+a run was resumed. Nothing is written here: the records hold the tables' rows and every file's
+bytes, and :func:`simgen.writer.write_scene` writes them. :mod:`simgen.make` runs the scenes in
+worker processes or Ray tasks.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import degrade as D
-from . import geometry as geo
+from . import degrade
+from . import geometry
 from . import labels
-from . import lidarseg as LS
+from . import lidarseg
 from . import rig
-from . import writer as W
+from . import writer
 from .config import SceneConfig
 from .layout import Grid
-from .lidar import LidarScanner
+from .lidar import LidarScanner, Sweep
 from .occluders import add_occluders
 from .scene import SWEEPS_PER_KEYFRAME, keyframe_times, sample_world, sweep_end_times
-from .settings import MakeSettings, scene_rng
+from .settings import MakeSettings, degradation_stream, scene_rng
 from .world import CATEGORY, World
+
+if TYPE_CHECKING:                  # pyrender is imported by the worker that renders, when it renders
+    from .camera import Renderer
 
 ANNOTATION_RANGE = 80.0
 BASE_TIMESTAMP_US = 1_600_000_000_000_000
 
 
-def degrade_sweep(sweep, cfg: SceneConfig, rings: np.ndarray,
+def degrade_sweep(sweep: Sweep, cfg: SceneConfig, rings: np.ndarray,
                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """The points (n, 5) a degraded LIDAR_TOP delivers for a clean ``sweep``, and their lidarseg
     labels (n,) uint8: fog (its returns are labelled noise), then the dropped rings and the field
@@ -42,14 +48,14 @@ def degrade_sweep(sweep, cfg: SceneConfig, rings: np.ndarray,
     # carry the columns after the ring unchanged (their contract in simgen.degrade).
     pts = np.concatenate([sweep.points_lidar, sweep.label[:, None].astype(np.float32)], axis=1)
     if d.alpha > 0:
-        pts, is_fog = D.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, d.alpha,
-                                  cfg.lidar.min_return, cfg.lidar.intensity_ref_range, rng)
-        pts[is_fog, 5] = LS.NOISE
+        pts, is_fog = degrade.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, d.alpha,
+                                        cfg.lidar.min_return, cfg.lidar.intensity_ref_range, rng)
+        pts[is_fog, 5] = lidarseg.NOISE
     if len(rings):
-        pts = D.drop_rings(pts, rings)
+        pts = degrade.drop_rings(pts, rings)
     if d.lidar_fov < 360:
         forward_lidar = rig.T_ego_from_lidar()[:3, :3].T @ np.array([1.0, 0.0, 0.0])
-        pts = D.keep_sector(pts, forward_lidar, d.lidar_fov)
+        pts = degrade.keep_sector(pts, forward_lidar, d.lidar_fov)
     return np.ascontiguousarray(pts[:, :5]), pts[:, 5].astype(np.uint8)
 
 
@@ -63,9 +69,9 @@ def degrade_image(rgb: np.ndarray, depth: np.ndarray, cam: rig.Camera, cfg: Scen
     if cam.channel in d.dropped:
         return np.zeros_like(rgb)
     if d.alpha > 0 and cfg.camera.renderer == "pyrender":   # Mitsuba renders fog as a medium
-        rgb = D.fog_image(rgb, depth_to_range(depth, cam.K), d.alpha)
+        rgb = degrade.fog_image(rgb, depth_to_range(depth, cam.K), d.alpha)
     if d.lens_occlusion:
-        rgb = D.lens_dirt(rgb, d.lens_occlusion, scene_rng(s.seed, idx, 100 + cam_index))
+        rgb = degrade.lens_dirt(rgb, d.lens_occlusion, scene_rng(s.seed, idx, 100 + cam_index))
     return rgb
 
 
@@ -115,161 +121,239 @@ def build_world(s: MakeSettings, idx: int) -> World:
     return world
 
 
-def generate_scene(s: MakeSettings, dataroot: Path, idx: int, threads: int = 1) -> int:
-    """Render, scan, label and write one scene. Returns its number of samples.
+@dataclass(frozen=True)
+class SceneContext:
+    """What every step of one scene reads: its settings, index, world and cameras, its names and
+    clock, and the rows its sensor files refer to."""
+    s: MakeSettings
+    idx: int
+    world: World
+    cams: list[rig.Camera]
+    calib: dict[str, dict]         # channel -> calibrated_sensor row
+    sample_tokens: list[str]       # one per key frame
+
+    @property
+    def cfg(self) -> SceneConfig:
+        return self.s.cfg
+
+    @property
+    def log_name(self) -> str:
+        return f"simgen-{self.s.seed}-{self.idx:04d}"
+
+    def token(self, *parts) -> str:
+        return writer.token(self.s.seed, self.idx, *parts)
+
+    def us(self, t: float) -> int:
+        """Scene seconds -> the scene's timestamp (microseconds); scenes lie 1000 s apart."""
+        return int(BASE_TIMESTAMP_US + self.idx * 1_000_000_000 + round(t * 1e6))
+
+
+@dataclass
+class Sensors:
+    """The scene's sensors and the random streams they draw from."""
+    renderer: Renderer             # holding this scene's world
+    scanner: LidarScanner
+    rng_sensor: np.random.Generator
+    dropped_rings: np.ndarray      # (k,) int, the rings a beam-drop lidar loses
+    rng_degrade: np.random.Generator
+
+
+@dataclass(frozen=True)
+class LidarKeyFrame:
+    """The key-frame sweep that a key frame's cameras and labels go with."""
+    sweep: Sweep
+    ego_pose: dict                 # its ego_pose row
+    t: float                       # scene seconds
+    k_sample: int
+
+
+def scene_records(s: MakeSettings, idx: int, threads: int = 1) -> writer.SceneRecords:
+    """Scene ``idx`` rendered, scanned and labelled, in memory.
 
     ``threads``: the lidar's ray casting is split over this many threads (the bytes do not depend
     on it). numpy's BLAS is held to one thread meanwhile: the products here are (n, 3) @ (3, 3),
-    which gain nothing from threads, and its idle threads spin (sched_yield) after each one:
-    measured on an 800x450 scene, 2.4 s of system time against 0.1 s, for the same wall time.
+    which gain nothing from threads, and its idle threads would spin after each one.
     """
     from threadpoolctl import threadpool_limits
     with threadpool_limits(limits=1, user_api="blas"):
-        return _generate_scene(s, dataroot, idx, threads)
+        return _scene_records(s, idx, threads)
 
 
-def _generate_scene(s: MakeSettings, dataroot: Path, idx: int, threads: int) -> int:
-    cfg = s.cfg
+def generate_scene(s: MakeSettings, dataroot: Path, idx: int, threads: int = 1) -> int:
+    """Make scene ``idx`` and write it into ``dataroot``. Returns its number of samples."""
+    records = scene_records(s, idx, threads)
+    writer.write_scene(Path(dataroot), records)
+    return records.n_samples
+
+
+def _scene_records(s: MakeSettings, idx: int, threads: int) -> writer.SceneRecords:
     world = build_world(s, idx)
     rng_sensor = scene_rng(s.seed, idx, 1)
-    renderer = _renderer(cfg, s.gl)
+    renderer = _renderer(s.cfg, s.gl)
     renderer.set_world(world, key=(s.seed, idx, id(world)))
-    scanner = LidarScanner(cfg.lidar, world, threads=threads)
-    cams = rig.cameras(cfg.camera.resolution)
+    scanner = LidarScanner(s.cfg.lidar, world, threads=threads)
     # Degradation draws from its own stream, so the clean sensor data (and the labels counted
     # on them) are the same bytes with or without it: paired datasets.
-    rng_degrade = scene_rng(s.seed, idx, 2)
-    dropped_rings = D.choose_rings(cfg.degrade.beam_drop, rng_degrade) if cfg.degrade.beam_drop else np.zeros(0, int)
+    dropped_rings, rng_degrade = degradation_stream(s, idx)
+    sensors = Sensors(renderer, scanner, rng_sensor, dropped_rings, rng_degrade)
 
-    scene_name = f"scene-{idx:04d}"
-    log_name = f"simgen-{s.seed}-{idx:04d}"
-    tok = lambda *p: W.token(s.seed, idx, *p)  # noqa: E731
-    t0_us = BASE_TIMESTAMP_US + idx * 1_000_000_000
-    us = lambda t: int(t0_us + round(t * 1e6))  # noqa: E731
-    rec = {name: [] for name in W.PER_SCENE_TABLES}
+    records = writer.SceneRecords(idx)
+    scene = _add_scene_rows(s, idx, world, records)
+    for j, t_end in enumerate(sweep_end_times(s.samples_per_scene)):
+        key_frame = _add_sweep(scene, sensors, records, j, float(t_end))
+        if key_frame is not None:
+            _add_key_frame(scene, sensors, records, key_frame)
+    _link_rows(scene, records)
+    return records
 
+
+def _add_scene_rows(s: MakeSettings, idx: int, world: World, records: writer.SceneRecords) -> SceneContext:
+    """The scene's log, map (and its image), sensor calibrations, key frames and scene rows."""
+    cams = rig.cameras(s.cfg.camera.resolution)
+    key_times = keyframe_times(s.samples_per_scene)
+    calib = {cam.channel: writer.calibrated_sensor_row(writer.token(s.seed, idx, "calib", cam.channel), cam.channel,
+                                                       cam.translation, cam.rotation, cam.K) for cam in cams}
+    calib[rig.LIDAR] = writer.calibrated_sensor_row(writer.token(s.seed, idx, "calib", rig.LIDAR), rig.LIDAR,
+                                                    rig.LIDAR_TRANSLATION, rig.lidar_rotation())
+    sample_tokens = [writer.token(s.seed, idx, "sample", k) for k in range(len(key_times))]
+    scene = SceneContext(s, idx, world, cams, calib, sample_tokens)
+
+    tok = scene.token
     log_tok, map_tok, scene_tok = tok("log"), tok("map"), tok("scene")
     map_file = f"maps/{map_tok}.png"
-    W.write_png(dataroot / map_file, world.drivable)
-    rec["log"].append({"token": log_tok, "logfile": log_name, "vehicle": "simgen-ego",
-                       "date_captured": "2020-09-13", "location": f"simgen-{cfg.name}"})
-    rec["map"].append({"token": map_tok, "log_tokens": [log_tok], "category": "semantic_prior", "filename": map_file})
-
-    calib = {}
-    for cam in cams:
-        calib[cam.channel] = {"token": tok("calib", cam.channel), "sensor_token": W.token("sensor", cam.channel),
-                              "translation": list(cam.translation), "rotation": list(cam.rotation),
-                              "camera_intrinsic": cam.K.tolist()}
-    calib[rig.LIDAR] = {"token": tok("calib", rig.LIDAR), "sensor_token": W.token("sensor", rig.LIDAR),
-                        "translation": list(rig.LIDAR_TRANSLATION), "rotation": list(rig.lidar_rotation()),
-                        "camera_intrinsic": []}
-    rec["calibrated_sensor"] = list(calib.values())
-
-    key_times = keyframe_times(s.samples_per_scene)
-    sample_toks = [tok("sample", k) for k in range(len(key_times))]
-    for k, t in enumerate(key_times):
-        rec["sample"].append({"token": sample_toks[k], "timestamp": us(t), "scene_token": scene_tok,
-                              "prev": sample_toks[k - 1] if k else "",
-                              "next": sample_toks[k + 1] if k + 1 < len(key_times) else ""})
-    rec["scene"].append({"token": scene_tok, "log_token": log_tok, "nbr_samples": len(key_times),
-                         "first_sample_token": sample_toks[0], "last_sample_token": sample_toks[-1],
-                         "name": scene_name,
-                         "description": " ".join(filter(None, [
-                             f"simgen preset {cfg.name}, seed {s.seed}, scene {idx}. {world.description}",
-                             cfg.degrade.describe()]))})
-
-    def add_sample_data(channel, sd_tok, t, k_sample, is_key, filename, width, height, fmt):
-        T = world.ego_pose(t)
-        rec["ego_pose"].append({"token": sd_tok, "timestamp": us(t), "translation": [float(T[0, 3]), float(T[1, 3]), 0.0],
-                                "rotation": [float(v) for v in geo.matrix_to_quat_wxyz(T[:3, :3])]})
-        rec["sample_data"].append({"token": sd_tok, "sample_token": sample_toks[k_sample], "ego_pose_token": sd_tok,
-                                   "calibrated_sensor_token": calib[channel]["token"], "timestamp": us(t),
-                                   "fileformat": fmt, "is_key_frame": is_key, "height": height, "width": width,
-                                   "filename": filename, "prev": "", "next": ""})
-        return rec["ego_pose"][-1]
-
-    # Lidar: every sweep; key frames go to samples/, the others to sweeps/ (next sample's token).
-    instance_anns: dict[int, list[dict]] = {}
-    lidar_chain, cam_chains = [], {c.channel: [] for c in cams}
-    for j, t_end in enumerate(sweep_end_times(s.samples_per_scene)):
-        is_key = (j + 1) % SWEEPS_PER_KEYFRAME == 0
-        k_sample = min(j // SWEEPS_PER_KEYFRAME, len(key_times) - 1)
-        sweep = scanner.scan(float(t_end), rng_sensor)
-        sd_tok = tok("sd", rig.LIDAR, j)
-        fname = f"{'samples' if is_key else 'sweeps'}/{rig.LIDAR}/{log_name}__{rig.LIDAR}__{us(t_end)}.pcd.bin"
-        points, point_labels = (degrade_sweep(sweep, cfg, dropped_rings, rng_degrade) if cfg.degrade.active
-                                else (sweep.points_lidar, sweep.label))
-        W.write_pointcloud(dataroot / fname, points)
-        pose = add_sample_data(rig.LIDAR, sd_tok, float(t_end), k_sample, is_key, fname, 0, 0, "pcd")
-        lidar_chain.append(rec["sample_data"][-1])
-        if is_key and len(points):
-            # nuScenes-lidarseg labels the key frames' points (a failed lidar has none to label).
-            seg_file = f"lidarseg/{s.version}/{sd_tok}_lidarseg.bin"
-            W.write_atomic(dataroot / seg_file, point_labels.tobytes())
-            rec["lidarseg"].append({"token": sd_tok, "sample_data_token": sd_tok, "filename": seg_file})
-        if is_key:
-            _key_frame(s, idx, world, renderer, cams, calib, rec, add_sample_data, cam_chains, instance_anns, sweep,
-                       pose, float(t_end), k_sample, sample_toks[k_sample], dataroot, log_name, tok, us)
-    for chain in [lidar_chain, *cam_chains.values()]:
-        for a, b in zip(chain[:-1], chain[1:]):
-            a["next"], b["prev"] = b["token"], a["token"]
-    for aid, anns in instance_anns.items():
-        for a, b in zip(anns[:-1], anns[1:]):
-            a["next"], b["prev"] = b["token"], a["token"]
-        actor = world.actors[aid]
-        rec["instance"].append({"token": anns[0]["instance_token"], "category_token": W.token("category", CATEGORY[actor.cls]),
-                                "nbr_annotations": len(anns), "first_annotation_token": anns[0]["token"],
-                                "last_annotation_token": anns[-1]["token"]})
-    W.write_part(dataroot, idx, rec)
-    return len(key_times)
+    records.files[map_file] = writer.encode_png(world.drivable)
+    rows = records.tables
+    rows["log"].append(writer.log_row(log_tok, scene.log_name, f"simgen-{s.cfg.name}"))
+    rows["map"].append(writer.map_row(map_tok, log_tok, map_file))
+    rows["calibrated_sensor"].extend(calib.values())
+    rows["sample"].extend(writer.sample_rows(scene.sample_tokens, [scene.us(t) for t in key_times], scene_tok))
+    description = " ".join(filter(None, [
+        f"simgen preset {s.cfg.name}, seed {s.seed}, scene {idx}. {world.description}", s.cfg.degrade.describe()]))
+    rows["scene"].append(writer.scene_row(scene_tok, log_tok, scene.sample_tokens, f"scene-{idx:04d}", description))
+    return scene
 
 
-def _key_frame(s, idx: int, world: World, renderer, cams, calib, rec, add_sample_data, cam_chains, instance_anns, sweep,
-               lidar_pose, t_key, k_sample, sample_tok, dataroot, log_name, tok, us):
-    """Cameras, annotations and labels of one key frame."""
-    cfg = s.cfg
-    Wd, Ht = cfg.camera.resolution
-    T_key = world.ego_pose(t_key)
-    boxes_key = world.boxes_at(t_key)
-    speed_key = world.speed_at(t_key)
+@dataclass(frozen=True)
+class SensorFile:
+    """One file a sensor delivers, at scene time ``t``, under key frame ``k_sample``."""
+    channel: str
+    token: str                     # of its sample_data, and of its ego_pose
+    t: float
+    k_sample: int
+    is_key_frame: bool
+    filename: str                  # relative to the dataroot
+    data: bytes
+    width: int = 0                 # pixels; 0 for the lidar
+    height: int = 0
+
+
+def _add_sensor_file(scene: SceneContext, records: writer.SceneRecords, f: SensorFile) -> dict:
+    """A sensor file with its ego_pose and sample_data rows. Returns the ego_pose row."""
+    fmt = "pcd" if f.channel == rig.LIDAR else "jpg"
+    pose = writer.ego_pose_row(f.token, scene.us(f.t), scene.world.ego_pose(f.t))
+    records.tables["ego_pose"].append(pose)
+    records.tables["sample_data"].append(writer.sample_data_row(
+        f.token, scene.sample_tokens[f.k_sample], scene.calib[f.channel]["token"], scene.us(f.t), fmt,
+        f.is_key_frame, f.width, f.height, f.filename))
+    records.files[f.filename] = f.data
+    return pose
+
+
+def _add_sweep(scene: SceneContext, sensors: Sensors, records: writer.SceneRecords, j: int,
+               t_end: float) -> LidarKeyFrame | None:
+    """Lidar sweep ``j``: a key frame's goes to samples/ (with its lidarseg labels), the others
+    to sweeps/, under the next sample's token. Returns the key frame it completes, if any."""
+    cfg = scene.cfg
+    is_key = (j + 1) % SWEEPS_PER_KEYFRAME == 0
+    k_sample = min(j // SWEEPS_PER_KEYFRAME, len(scene.sample_tokens) - 1)
+    sweep = sensors.scanner.scan(t_end, sensors.rng_sensor)
+    sd_tok = scene.token("sd", rig.LIDAR, j)
+    folder = "samples" if is_key else "sweeps"
+    filename = f"{folder}/{rig.LIDAR}/{scene.log_name}__{rig.LIDAR}__{scene.us(t_end)}.pcd.bin"
+    points, point_labels = (degrade_sweep(sweep, cfg, sensors.dropped_rings, sensors.rng_degrade)
+                            if cfg.degrade.active else (sweep.points_lidar, sweep.label))
+    pose = _add_sensor_file(scene, records, SensorFile(rig.LIDAR, sd_tok, t_end, k_sample, is_key, filename,
+                                                       writer.encode_pointcloud(points)))
+    if not is_key:
+        return None
+    if len(points):
+        # nuScenes-lidarseg labels the key frames' points (a failed lidar has none to label).
+        seg_file = f"lidarseg/{scene.s.version}/{sd_tok}_lidarseg.bin"
+        records.files[seg_file] = point_labels.tobytes()
+        records.tables["lidarseg"].append(writer.lidarseg_row(sd_tok, seg_file))
+    return LidarKeyFrame(sweep, pose, t_end, k_sample)
+
+
+def _add_key_frame(scene: SceneContext, sensors: Sensors, records: writer.SceneRecords,
+                   key_frame: LidarKeyFrame) -> None:
+    """The six cameras of a key frame, and the annotations of the objects within
+    ANNOTATION_RANGE, labelled from the images and the key-frame sweep."""
+    world = scene.world
+    T_global_from_ego = world.ego_pose(key_frame.t)
+    boxes = world.boxes_at(key_frame.t)
     near = [i for i, a in enumerate(world.actors)
-            if a.annotate and np.hypot(*(boxes_key[i, :2] - T_key[:2, 3])) <= ANNOTATION_RANGE]
-    id_images, cam_poses, actor_poses = [], [], []
-    for cam_index, cam in enumerate(cams):
-        t_cam = camera_time(t_key, cam)
-        T_gc = world.ego_pose(t_cam) @ cam.T_ego_from_cam
-        b = world.boxes_at(t_cam)
-        poses = geo.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])
-        pose_of = {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate}
-        rgb, depth, ids = renderer.render(cam, T_gc, pose_of, with_depth=cfg.degrade.alpha > 0, lazy_ids=True)
-        if cfg.camera.renderer == "mitsuba":
-            # Path-traced rgb; the labels keep the rasterised id pass, so they do not depend on
-            # the renderer (the two agree geometrically: tests/simgen/test_mitsuba.py).
-            rgb, _ = _mitsuba(cfg).render(world, cam, T_gc, pose_of, cfg.degrade.alpha, with_ids=False)
-        if cfg.degrade.active:
-            rgb = degrade_image(rgb, depth, cam, cfg, s, idx, cam_index)
-        fname = f"samples/{cam.channel}/{log_name}__{cam.channel}__{us(t_cam)}.jpg"
-        W.write_jpeg(dataroot / fname, rgb, cfg.camera.jpeg_quality)
-        add_sample_data(cam.channel, tok("sd", cam.channel, k_sample), t_cam, k_sample, True, fname, Wd, Ht, "jpg")
-        cam_chains[cam.channel].append(rec["sample_data"][-1])
-        id_images.append(ids)
-        cam_poses.append(T_gc)
-        actor_poses.append(poses[near])
-    actors = [world.actors[i] for i in near]
-    vis = labels.visible_fraction(actors, actor_poses, cams, cam_poses, id_images)
+            if a.annotate and np.hypot(*(boxes[i, :2] - T_global_from_ego[:2, 3])) <= ANNOTATION_RANGE]
+    id_images, cam_poses, actor_poses = _add_cameras(scene, sensors, records, key_frame, near)
+    vis = labels.visible_fraction([world.actors[i] for i in near], actor_poses, scene.cams, cam_poses, id_images)
+    speed = world.speed_at(key_frame.t)
     anns = []
     for n, i in enumerate(near):
         actor = world.actors[i]
-        translation, size, rotation = geo.box_to_nuscenes(boxes_key[i])
-        attr = labels.attribute(actor, float(speed_key[i]))
-        anns.append({"token": tok("ann", actor.id, k_sample), "sample_token": sample_tok,
-                     "instance_token": tok("instance", actor.id),
-                     "visibility_token": labels.visibility_token(vis[n]),
-                     "attribute_tokens": [W.token("attribute", attr)] if attr else [],
-                     "translation": translation, "size": size, "rotation": rotation,
-                     "prev": "", "next": "", "num_lidar_pts": 0, "num_radar_pts": 0})
-    counts = labels.count_points_in_boxes(sweep.points_lidar, anns, lidar_pose, calib[rig.LIDAR])
-    for ann, c, i in zip(anns, counts, near):
+        anns.append(writer.annotation_row(
+            scene.token("ann", actor.id, key_frame.k_sample), scene.sample_tokens[key_frame.k_sample],
+            scene.token("instance", actor.id), labels.visibility_token(vis[n]),
+            labels.attribute(actor, float(speed[i])), boxes[i]))
+    counts = labels.count_points_in_boxes(key_frame.sweep.points_lidar, anns, key_frame.ego_pose,
+                                          scene.calib[rig.LIDAR])
+    for ann, c in zip(anns, counts):
         ann["num_lidar_pts"] = c
-        instance_anns.setdefault(i, []).append(ann)
-    rec["sample_annotation"].extend(anns)
+    records.tables["sample_annotation"].extend(anns)
+
+
+def _add_cameras(scene: SceneContext, sensors: Sensors, records: writer.SceneRecords, key_frame: LidarKeyFrame,
+                 near: list[int]) -> tuple[list, list[np.ndarray], list[np.ndarray]]:
+    """Render the six cameras of a key frame, each at the time the sweep crosses its axis.
+    Returns per camera its actor-id image, T_global_from_cam (4, 4) and the (m, 4, 4) poses of
+    the ``near`` actors at its time."""
+    cfg, world = scene.cfg, scene.world
+    width, height = cfg.camera.resolution
+    id_images, cam_poses, actor_poses = [], [], []
+    for cam_index, cam in enumerate(scene.cams):
+        t_cam = camera_time(key_frame.t, cam)
+        T_global_from_cam = world.ego_pose(t_cam) @ cam.T_ego_from_cam
+        b = world.boxes_at(t_cam)
+        poses = geometry.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])     # (n, 4, 4) T_global_from_box
+        pose_of = {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate}
+        rgb, depth, ids = sensors.renderer.render(cam, T_global_from_cam, pose_of, with_depth=cfg.degrade.alpha > 0,
+                                                  lazy_ids=True)
+        if cfg.camera.renderer == "mitsuba":
+            # Path-traced rgb; the labels keep the rasterised id pass, so they do not depend on
+            # the renderer (the two agree geometrically: tests/simgen/test_mitsuba.py).
+            rgb, _ = _mitsuba(cfg).render(world, cam, T_global_from_cam, pose_of, cfg.degrade.alpha, with_ids=False)
+        if cfg.degrade.active:
+            rgb = degrade_image(rgb, depth, cam, cfg, scene.s, scene.idx, cam_index)
+        filename = f"samples/{cam.channel}/{scene.log_name}__{cam.channel}__{scene.us(t_cam)}.jpg"
+        sd_tok = scene.token("sd", cam.channel, key_frame.k_sample)
+        jpeg = writer.encode_jpeg(rgb, cfg.camera.jpeg_quality)
+        _add_sensor_file(scene, records, SensorFile(cam.channel, sd_tok, t_cam, key_frame.k_sample, True, filename,
+                                                    jpeg, width, height))
+        id_images.append(ids)
+        cam_poses.append(T_global_from_cam)
+        actor_poses.append(poses[near])
+    return id_images, cam_poses, actor_poses
+
+
+def _link_rows(scene: SceneContext, records: writer.SceneRecords) -> None:
+    """Chain each sensor's sample_data and each object's annotations in time order, and add an
+    instance per annotated object (in the order of their first annotation)."""
+    rows = records.tables
+    by_sensor: dict[str, list[dict]] = {}
+    for row in rows["sample_data"]:
+        by_sensor.setdefault(row["calibrated_sensor_token"], []).append(row)
+    by_instance: dict[str, list[dict]] = {}
+    for ann in rows["sample_annotation"]:
+        by_instance.setdefault(ann["instance_token"], []).append(ann)
+    for chain in [*by_sensor.values(), *by_instance.values()]:
+        writer.link(chain)
+    category = {scene.token("instance", a.id): CATEGORY[a.cls] for a in scene.world.actors if a.annotate}
+    rows["instance"].extend(writer.instance_row(anns, category[tok]) for tok, anns in by_instance.items())

@@ -1,12 +1,11 @@
 """`simgen make --ray`: the scenes as Ray tasks, on a local Ray instance or an existing cluster.
 
-A task runs the same :func:`simgen.pipeline.generate_scene` as a local worker process does, into a
-scratch folder on its own node, and returns the bytes of every file the scene wrote: its *part*
-(the JPEGs, ``.pcd.bin`` sweeps, lidarseg labels, the map and the table part
-``.parts/scene-NNNN.json``). The results travel through Ray's object store, and the driver writes
-each file into the dataroot atomically, the table part last: it is the mark that a scene is done,
-as for the local pool. So the workers need no filesystem shared with the driver, and the bytes are
-those of the local pool, file for file.
+A task (:func:`scene_task`) makes its scene in memory with the same
+:func:`simgen.pipeline.scene_records` as a local worker process does and returns its
+:class:`~simgen.writer.SceneRecords`: the tables' rows and the bytes of every file. The records
+travel through Ray's object store, and the driver writes each file once, into the dataroot,
+atomically and the table part last, as for the local pool. So the workers need no filesystem
+shared with the driver, and the bytes are those of the local pool, file for file.
 
 Ray is an optional dependency (``pip install -e .[ray]``): it is imported only here, and only when
 ``--ray`` is given.
@@ -16,27 +15,17 @@ from __future__ import annotations
 import logging
 import os
 import re
-import shutil
-import signal
 import socket
-import sys
-import tempfile
-import threading
-from pathlib import Path
 from typing import Iterator
 
-from . import writer as W
-from .config import ConfigError
+from .errors import ClusterError, ConfigError
 from .settings import MakeSettings
+from .writer import SceneRecords
 
 LOCAL = "local"              # --ray without an ADDRESS: start a private Ray instance
-CONNECT_TIMEOUT_S = 5.0      # a cluster address that does not answer within this is unreachable
-JOIN_TIMEOUT_S = 30.0        # joining a cluster that answers takes a few seconds
+CONNECT_TIMEOUT_S = 5.0      # a cluster address that does not accept a connection within this is unreachable
+HANDSHAKE_TIMEOUT_S = 10.0   # a Ray head answers the gRPC handshake within this
 MAX_RETRIES = 3              # Ray reruns a scene whose worker process or node was lost
-# Test-only: "SCENE:MARKER" makes the first attempt at that scene kill its own worker process
-# (SIGKILL, after rendering, before its bytes are returned) and create MARKER, so that Ray's
-# retry, which finds MARKER, goes through. Used by tests/simgen/test_ray.py.
-TEST_KILL_ENV = "SIMGEN_TEST_KILL_RAY_WORKER"
 
 
 def parse_address(text: str) -> str:
@@ -50,19 +39,27 @@ def parse_address(text: str) -> str:
     return text
 
 
+def scene_task(s: MakeSettings, idx: int, threads: int) -> SceneRecords:
+    """Runs on a Ray worker: scene ``idx``, made in memory."""
+    if s.gl:
+        os.environ["PYOPENGL_PLATFORM"] = s.gl     # as the local pool's _worker_init does
+    from .pipeline import scene_records
+    return scene_records(s, idx, threads)
+
+
 class RayRun:
     """A connection to Ray for one `make` run: :meth:`connect`, :meth:`scenes`, :meth:`close`."""
 
     def __init__(self, ray, cpus: int | None):
         self.ray = ray
         self.cpus = cpus     # of a local instance; None on a cluster
-        self._task = ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)(scene_files)
+        self._task = ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)(scene_task)
 
     @classmethod
     def connect(cls, address: str, workers: int) -> "RayRun":
         """Start a local Ray instance with ``workers`` CPUs (``address == LOCAL``), or join the
-        cluster at ``auto`` or ``HOST:PORT``. Bad input (no Ray installed, an unreachable cluster)
-        raises ConfigError before anything is written."""
+        cluster at ``auto`` or ``HOST:PORT``. No Ray installed, or a cluster that cannot be
+        reached or joined, raises ClusterError before anything is written."""
         local = address == LOCAL
         if local:
             # A private instance serves only this process: it listens on the loopback interface
@@ -71,25 +68,21 @@ class RayRun:
         try:
             import ray
         except ImportError:
-            raise ConfigError("--ray needs the optional extra 'ray': pip install -e .[ray]") from None
+            raise ClusterError("--ray needs the optional extra 'ray': pip install -e .[ray]") from None
         common = dict(log_to_driver=False, logging_level=logging.WARNING)
         if local:
             ray.init(num_cpus=workers, include_dashboard=False, **common)
             return cls(ray, cpus=workers)
-        host_port = _cluster_address(address)
-        _probe(address, host_port)
-        # ray.init has no timeout of its own: at an address that accepts connections but is no
-        # Ray cluster (a dashboard port, say) it retries for many minutes.
-        watchdog = threading.Timer(JOIN_TIMEOUT_S, _give_up, args=(address, host_port))
-        watchdog.daemon = True
-        watchdog.start()
+        if address != "auto":
+            # ray.init has no timeout of its own: at an address where no Ray cluster answers it
+            # retries for many minutes. `auto` is found by ray.init, which fails at once where
+            # this node runs no cluster.
+            _probe(address)
         try:
-            ray.init(address=host_port, **common)
-        except (ConnectionError, RuntimeError) as e:
-            raise ConfigError(f"--ray {address}: cannot join the Ray cluster at {host_port} "
-                              f"({_join_failure(e)})") from None
-        finally:
-            watchdog.cancel()
+            ray.init(address=address, **common)
+        except (ConnectionError, RuntimeError, ValueError) as e:
+            where = "a Ray cluster on this node" if address == "auto" else f"the Ray cluster at {address}"
+            raise ClusterError(f"--ray {address}: cannot join {where} ({_join_failure(e)})") from None
         return cls(ray, cpus=None)
 
     def threads_per_task(self, todo: int) -> int:
@@ -99,22 +92,20 @@ class RayRun:
             return 1
         return max(1, len(os.sched_getaffinity(0)) // max(1, min(self.cpus, todo)))
 
-    def scenes(self, s: MakeSettings, dataroot: Path, todo: list[int]) -> Iterator[tuple[int, int]]:
-        """Run the scenes ``todo`` as tasks; write each one's files as it completes (in completion
-        order) and yield ``(scene index, samples)``. Closing the iterator early cancels the rest."""
+    def scenes(self, s: MakeSettings, todo: list[int]) -> Iterator[SceneRecords]:
+        """Run the scenes ``todo`` as tasks; yield each one's records as it completes (in
+        completion order). Closing the iterator early cancels the rest."""
         ray = self.ray
         settings = ray.put(s)        # one copy in the object store, not one per task
         threads = self.threads_per_task(len(todo))
-        pending = {self._task.remote(settings, i, threads): i for i in todo}
+        pending = {self._task.remote(settings, i, threads) for i in todo}
         try:
             while pending:
                 [ref], _ = ray.wait(list(pending), num_returns=1)
-                idx = pending.pop(ref)
-                n_samples, files = ray.get(ref)
+                pending.remove(ref)
+                records = ray.get(ref)
                 del ref              # the driver's reference is the last: Ray frees the object
-                write_scene(dataroot, idx, files)
-                del files
-                yield idx, n_samples
+                yield records
         finally:
             for ref in pending:
                 ray.cancel(ref, force=True)
@@ -124,66 +115,27 @@ class RayRun:
         self.ray.shutdown()
 
 
-def scene_files(s: MakeSettings, idx: int, threads: int) -> tuple[int, dict[str, bytes]]:
-    """Runs on a Ray worker: scene ``idx`` made into a scratch folder on the worker's node.
-    Returns its number of samples and ``{path relative to the dataroot: bytes}`` of every file
-    it wrote."""
-    if s.gl:
-        os.environ["PYOPENGL_PLATFORM"] = s.gl     # as the local pool's _worker_init does
-    from .pipeline import generate_scene
-    with tempfile.TemporaryDirectory(prefix=f"simgen-scene-{idx:04d}-") as tmp:
-        root = Path(tmp)
-        n_samples = generate_scene(s, root, idx, threads)
-        _test_kill_once(idx, root)
-        files = {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
-    return n_samples, files
-
-
-def write_scene(dataroot: Path, idx: int, files: dict[str, bytes]) -> None:
-    """Write a scene's files into ``dataroot``, each through a temporary name and a rename, its
-    table part last: until that exists, a rerun makes the scene again."""
-    part = W.part_path(Path(), idx).as_posix()
-    assert part in files, f"scene {idx}: no table part among its {len(files)} files"
-    for rel, data in files.items():
-        # The paths come from another process, maybe another machine: they stay inside dataroot.
-        assert not rel.startswith("/") and ".." not in Path(rel).parts, rel
-        if rel != part:
-            W.write_atomic(dataroot / rel, data)
-    W.write_atomic(dataroot / part, files[part])
-
-
-def _cluster_address(address: str) -> str:
-    """``HOST:PORT`` of the cluster to join: as given, or for ``auto`` the one that ``ray start``
-    recorded on this node (or ``$RAY_ADDRESS``), found as ``ray.init`` finds it."""
-    if address != "auto":
-        return address
-    try:
-        from ray._private.services import canonicalize_bootstrap_address
-        found = canonicalize_bootstrap_address("auto")
-    except ConnectionError:
-        found = None
-    except ValueError as e:          # a malformed $RAY_ADDRESS
-        raise ConfigError(f"--ray auto: {e}") from None
-    if found is None:
-        raise ConfigError("--ray auto: no Ray cluster is running on this node (start one with "
-                          "`ray start --head`, or give HOST:PORT)")
-    return found
-
-
-def _probe(address: str, host_port: str) -> None:
-    """Refuse an address where nothing answers, within CONNECT_TIMEOUT_S: ``ray.init`` itself
-    retries an unreachable address for many minutes."""
-    host, _, port = host_port.rpartition(":")
+def _probe(address: str) -> None:
+    """Refuse ``HOST:PORT`` unless it accepts a connection within CONNECT_TIMEOUT_S and
+    completes a gRPC handshake (a Ray head's GCS is a gRPC server) within HANDSHAKE_TIMEOUT_S."""
+    host, _, port = address.rpartition(":")
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S).close()
     except socket.timeout:
-        reason = f"no answer within {CONNECT_TIMEOUT_S:g} s"
+        raise ClusterError(f"--ray {address}: cannot reach the Ray cluster at {address} "
+                           f"(no answer within {CONNECT_TIMEOUT_S:g} s)") from None
     except OSError as e:
-        reason = e.strerror or str(e)
-    else:
-        return
-    where = host_port if address == host_port else f"{host_port}, found by {address}"
-    raise ConfigError(f"--ray {address}: cannot reach the Ray cluster at {where} ({reason})")
+        raise ClusterError(f"--ray {address}: cannot reach the Ray cluster at {address} "
+                           f"({e.strerror or e})") from None
+    import grpc
+    channel = grpc.insecure_channel(address)
+    try:
+        grpc.channel_ready_future(channel).result(timeout=HANDSHAKE_TIMEOUT_S)
+    except grpc.FutureTimeoutError:
+        raise ClusterError(f"--ray {address}: no Ray cluster answers at {address} (it accepts connections "
+                           f"but completes no gRPC handshake within {HANDSHAKE_TIMEOUT_S:g} s)") from None
+    finally:
+        channel.close()
 
 
 def _join_failure(e: Exception) -> str:
@@ -194,24 +146,3 @@ def _join_failure(e: Exception) -> str:
         return ("it uses Ray's token authentication: set RAY_AUTH_MODE=token, with the cluster's "
                 "token in ~/.ray/auth_token")
     return str(e).splitlines()[0] if str(e) else type(e).__name__
-
-
-def _give_up(address: str, host_port: str) -> None:
-    """The end of a join that did not complete within JOIN_TIMEOUT_S. The cluster is joined before
-    anything is written, so ending the process here leaves nothing half-done."""
-    print(f"simgen: error: --ray {address}: no Ray cluster answers at {host_port} "
-          f"(joining it took over {JOIN_TIMEOUT_S:g} s)", file=sys.stderr, flush=True)
-    os._exit(2)      # simgen.cli's exit code for bad input; the main thread is stuck inside Ray
-
-
-def _test_kill_once(idx: int, scratch: Path) -> None:
-    """The test-only hook of :data:`TEST_KILL_ENV` (a no-op unless that variable is set). The
-    scratch folder goes first, so that the test leaves nothing behind in the temporary folder."""
-    hook = os.environ.get(TEST_KILL_ENV)
-    if not hook:
-        return
-    scene, _, marker = hook.partition(":")
-    if int(scene) == idx and not os.path.exists(marker):
-        Path(marker).touch()
-        shutil.rmtree(scratch)
-        os.kill(os.getpid(), signal.SIGKILL)

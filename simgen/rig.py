@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import geometry as geo
+from . import geometry
 
 NATIVE_RESOLUTION = (1600, 900)
 
@@ -40,7 +40,7 @@ class Camera:
 
     @property
     def T_ego_from_cam(self) -> np.ndarray:
-        return geo.transform_from_quat(self.translation, self.rotation)
+        return geometry.transform_from_quat(self.translation, self.rotation)
 
     @property
     def center_azimuth(self) -> float:
@@ -59,14 +59,14 @@ def cameras(resolution: tuple[int, int] = NATIVE_RESOLUTION) -> list[Camera]:
     sx, sy = resolution[0] / NATIVE_RESOLUTION[0], resolution[1] / NATIVE_RESOLUTION[1]
     out = []
     for ch, (t, q, f, cx, cy) in _CAMERAS.items():
-        K = geo.scale_intrinsics(np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]]), sx, sy)
+        K = geometry.scale_intrinsics(np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]]), sx, sy)
         out.append(Camera(ch, tuple(t), _normalised(q), K, tuple(resolution)))
     return out
 
 
 def T_ego_from_lidar() -> np.ndarray:
     """LIDAR_TOP extrinsics: sensor x points to ego -y and sensor y to ego +x."""
-    return geo.transform_from_quat(LIDAR_TRANSLATION, _normalised(LIDAR_ROTATION))
+    return geometry.transform_from_quat(LIDAR_TRANSLATION, _normalised(LIDAR_ROTATION))
 
 
 def lidar_rotation() -> tuple:

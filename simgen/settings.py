@@ -32,3 +32,15 @@ def scene_rng(seed: int, idx: int, stream: int) -> np.random.Generator:
     """Independent generators per (seed, scene, stream): 0 = world, 1 = sensors, 2 = degradation,
     3 = occluders, 100 + camera index = that camera's lens dirt."""
     return np.random.default_rng(np.random.SeedSequence([seed, idx, stream]))
+
+
+def degradation_stream(s: MakeSettings, idx: int) -> tuple[np.ndarray, np.random.Generator]:
+    """Scene ``idx``'s degradation stream (2) and its first draw: the dropped lidar rings, (k,)
+    int, empty without beam drop. The rings are drawn first, so they are known without making
+    the scene (the dataset's degradation record lists them for every scene, also for those made
+    by an earlier, interrupted run); the fog draws from the generator after them."""
+    from .degrade import choose_rings
+    rng = scene_rng(s.seed, idx, 2)
+    n_drop = s.cfg.degrade.beam_drop
+    rings = choose_rings(n_drop, rng) if n_drop else np.zeros(0, int)
+    return rings, rng

@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .config import ConfigError
+from .errors import ConfigError, DataError
 from .rig import CAMERAS
 from .writer import write_png
 
@@ -24,11 +24,11 @@ def load_nusc(dataroot: Path, version: str):
     """NuScenes(version, dataroot) with a clear error instead of a traceback."""
     from nuscenes import NuScenes
     if not (Path(dataroot) / version).is_dir():
-        raise ConfigError(f"{dataroot}: no {version}/ folder with nuScenes tables")
+        raise DataError(f"{dataroot}: no {version}/ folder with nuScenes tables")
     try:
         return NuScenes(version=version, dataroot=str(dataroot), verbose=False)
     except (OSError, ValueError, KeyError, AssertionError) as e:
-        raise ConfigError(f"{dataroot}/{version}: cannot be loaded by nuscenes-devkit ({e})") from None
+        raise DataError(f"{dataroot}/{version}: cannot be loaded by nuscenes-devkit ({e})") from None
 
 
 def draw_camera(nusc, sd_token: str, width: int) -> np.ndarray:
@@ -37,7 +37,7 @@ def draw_camera(nusc, sd_token: str, width: int) -> np.ndarray:
     path, boxes, K = nusc.get_sample_data(sd_token)
     img = cv2.imread(path)
     if img is None:
-        raise ConfigError(f"{path}: missing or not a readable image")
+        raise DataError(f"{path}: missing or not a readable image")
     for box in boxes:
         corners = box.corners()                       # (3, 8) camera frame
         if np.any(corners[2] < 0.5):
@@ -61,9 +61,9 @@ def point_colors(nusc, sd_token: str, pts: np.ndarray) -> tuple[np.ndarray, str]
         try:
             labels = np.fromfile(path, dtype=np.uint8)
         except OSError as e:
-            raise ConfigError(f"{path}: unreadable lidarseg labels ({e})") from None
+            raise DataError(f"{path}: unreadable lidarseg labels ({e})") from None
         if len(labels) != pts.shape[1]:
-            raise ConfigError(f"{path}: {len(labels)} lidarseg labels for a sweep of {pts.shape[1]} points")
+            raise DataError(f"{path}: {len(labels)} lidarseg labels for a sweep of {pts.shape[1]} points")
         palette = np.array([nusc.colormap[nusc.lidarseg_idx2name_mapping[i]][::-1]
                             for i in range(len(nusc.lidarseg_idx2name_mapping))], np.uint8)
         return palette[np.minimum(labels, len(palette) - 1)], "lidarseg colours"
@@ -79,7 +79,7 @@ def draw_bev(nusc, sd_token: str, size: int, half_range: float = 50.0) -> np.nda
     try:
         pts = LidarPointCloud.from_file(path).points
     except (OSError, ValueError) as e:
-        raise ConfigError(f"{path}: not a readable .pcd.bin ({e})") from None
+        raise DataError(f"{path}: not a readable .pcd.bin ({e})") from None
     img = np.full((size, size, 3), 20, np.uint8)
     s = size / (2 * half_range)
     u = ((pts[0] + half_range) * s).astype(int)

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import assets
-from . import geometry as geo
+from . import geometry
 from .config import ActorsConfig, SceneConfig
 from .layout import CURB_HEIGHT, MAP_PAD, Grid
 from .world import Actor
@@ -67,7 +67,7 @@ class Placer:
         if len(others) == 0:
             return True
         near = np.hypot(*(others[:, :2] - box[:2]).T) < (np.hypot(*box[3:5]) + np.hypot(others[:, 3], others[:, 4])) / 2 + 2 * margin
-        return not near.any() or not geo.bev_overlap(box[None], others[near], margin).any()
+        return not near.any() or not geometry.bev_overlap(box[None], others[near], margin).any()
 
     def add(self, plan: Plan, margin: float) -> bool:
         box = plan.box()
@@ -149,41 +149,59 @@ def _sidewalk_line(grid: Grid, rng: np.random.Generator, lateral: float):
     return origin, heading, length
 
 
+@dataclass
+class ActorMaker:
+    """Makes the actors of a scene, numbered 1, 2, ... in the order they are made (the ego is 0)."""
+    rng: np.random.Generator
+    last_id: int = 0
+
+    def __call__(self, cls: str, **kw) -> Actor:
+        self.last_id += 1
+        return make_actor(self.last_id, cls, self.rng, **kw)
+
+
 def place_actors(cfg: SceneConfig, grid: Grid, static: np.ndarray, duration: float,
                  rng: np.random.Generator) -> list[Plan]:
-    """All actors of a scene: the ego first (id 0), then everyone else."""
-    a: ActorsConfig = cfg.actors
-    lay = cfg.layout
-    hw, sw = grid.road_half_width, lay.sidewalk_width
-    W, H = grid.extent
-    km = grid.road_km
+    """All actors of a scene: the ego first (id 0), then everyone else, section by section (each
+    draws from ``rng`` in turn, so their order is part of the scene's recipe)."""
     placer = Placer(static)
-    nid = [0]
+    new = ActorMaker(rng)
+    _place_ego(cfg, grid, placer, duration, rng)
+    _place_parking_strips(cfg.actors, grid, placer, new, rng)
+    _place_moving_vehicles(cfg.actors, grid, placer, new, duration, rng)
+    _place_moving_bicycles(cfg, grid, placer, new, rng)
+    _place_parked_bicycles(cfg, grid, placer, new, rng)
+    _place_pedestrians(cfg, grid, placer, new, rng)
+    return placer.plans
 
-    def new(cls, **kw):
-        nid[0] += 1
-        return make_actor(nid[0], cls, rng, **kw)
 
-    # The ego: in a lane, starting near the world centre, annotate=False.
+def _place_ego(cfg: SceneConfig, grid: Grid, placer: Placer, duration: float, rng: np.random.Generator) -> None:
+    """The ego: in a lane, starting near the world centre, not annotated."""
+    W, H = grid.extent
     for _ in range(1000):
         origin, heading, length, _ = _lane(grid, rng)
         v = rng.uniform(*cfg.ego.speed)
         centre = MAP_PAD + np.array([W, H]) / 2
         d = np.array([np.cos(heading), np.sin(heading)])
         s_mid = float(np.dot(centre - origin, d))
-        s0 = s_mid - v * duration / 2 + rng.uniform(-lay.block_pitch / 4, lay.block_pitch / 4)
+        s0 = s_mid - v * duration / 2 + rng.uniform(-cfg.layout.block_pitch / 4, cfg.layout.block_pitch / 4)
         ego_mesh = assets.car(*EGO_SIZE, (200, 200, 200))
         ego = Actor(0, "car", EGO_SIZE, ego_mesh, np.zeros((0, 6)), annotate=False)
         plan = Plan(ego, origin, heading, float(np.clip(s0, 10, length - 10)), length, v, priority=10**6)
         if placer.add(plan, 0.5):
-            break
+            return
 
-    # Parked vehicles, cone groups and barrier rows in the parking strips, slot by slot.
+
+def _place_parking_strips(a: ActorsConfig, grid: Grid, placer: Placer, new: ActorMaker,
+                          rng: np.random.Generator) -> None:
+    """Parked vehicles, cone groups and barrier rows in the parking strips, slot by slot."""
+    lay = grid.cfg
+    hw, sw = grid.road_half_width, lay.sidewalk_width
+    W, H = grid.extent
     slot = 6.5
     spans_x, spans_y = grid.intervals(grid.xs, W), grid.intervals(grid.ys, H)
     cone_p = a.cones_per_km / 4.0 / max(1e-6, 1000.0 / slot)      # a group holds about 4 cones
     barrier_p = a.barriers_per_km / 3.0 / max(1e-6, 1000.0 / slot)
-    moto_p, truck_p = 0.06, 0.06
     for horizontal, centres, spans in ((True, grid.ys, spans_x), (False, grid.xs, spans_y)):
         for c in centres:
             for side in (-1, 1):
@@ -192,29 +210,35 @@ def place_actors(cfg: SceneConfig, grid: Grid, static: np.ndarray, duration: flo
                     for u in np.arange(u0 + sw + 1.0, u1 - sw - slot, slot):
                         heading = (0.0 if side < 0 else np.pi) if horizontal else (np.pi / 2 if side > 0 else -np.pi / 2)
                         pos = np.array([u + slot / 2, c + lat]) if horizontal else np.array([c + lat, u + slot / 2])
-                        r = rng.random()
-                        if r < cone_p:
-                            n = int(rng.integers(3, 6))
-                            d = np.array([np.cos(heading), np.sin(heading)])
-                            for k in range(n):
-                                plan = Plan(new("traffic_cone"), pos + (k - n / 2) * 1.3 * d, heading, 0.0, 0.0, 0.0)
-                                placer.add(plan, 0.1)
-                        elif r < cone_p + barrier_p:
-                            d = np.array([np.cos(heading), np.sin(heading)])
-                            for k in range(int(rng.integers(2, 4))):
-                                plan = Plan(new("barrier"), pos + (k - 1) * 2.6 * d, heading + np.pi / 2, 0.0, 0.0, 0.0)
-                                placer.add(plan, 0.05)
-                        elif r < cone_p + barrier_p + a.parked_fraction:
-                            q = rng.random()
-                            cls = "motorcycle" if q < moto_p else ("truck" if q < moto_p + truck_p else "car")
-                            jitter = rng.uniform(-0.4, 0.4)
-                            plan = Plan(new(cls, parked=True, rider=False), pos + jitter, heading, 0.0, 0.0, 0.0)
-                            placer.add(plan, 0.3)
+                        _fill_slot(a, placer, new, rng, pos, heading, cone_p, barrier_p)
 
-    # Moving vehicles in lanes, with an occasional planned stop.
+
+def _fill_slot(a: ActorsConfig, placer: Placer, new: ActorMaker, rng: np.random.Generator, pos: np.ndarray,
+               heading: float, cone_p: float, barrier_p: float) -> None:
+    """One parking slot at ``pos`` (2,): a cone group, a barrier row, a parked vehicle or nothing."""
+    moto_p, truck_p = 0.06, 0.06
+    d = np.array([np.cos(heading), np.sin(heading)])
+    r = rng.random()
+    if r < cone_p:
+        n = int(rng.integers(3, 6))
+        for k in range(n):
+            placer.add(Plan(new("traffic_cone"), pos + (k - n / 2) * 1.3 * d, heading, 0.0, 0.0, 0.0), 0.1)
+    elif r < cone_p + barrier_p:
+        for k in range(int(rng.integers(2, 4))):
+            placer.add(Plan(new("barrier"), pos + (k - 1) * 2.6 * d, heading + np.pi / 2, 0.0, 0.0, 0.0), 0.05)
+    elif r < cone_p + barrier_p + a.parked_fraction:
+        q = rng.random()
+        cls = "motorcycle" if q < moto_p else ("truck" if q < moto_p + truck_p else "car")
+        jitter = rng.uniform(-0.4, 0.4)
+        placer.add(Plan(new(cls, parked=True, rider=False), pos + jitter, heading, 0.0, 0.0, 0.0), 0.3)
+
+
+def _place_moving_vehicles(a: ActorsConfig, grid: Grid, placer: Placer, new: ActorMaker, duration: float,
+                           rng: np.random.Generator) -> None:
+    """Moving vehicles in lanes, with an occasional planned stop."""
     mix = list(a.vehicle_mix)
     weights = np.array([a.vehicle_mix[k] for k in mix])
-    for _ in range(int(round(a.vehicles_per_km * km))):
+    for _ in range(int(round(a.vehicles_per_km * grid.road_km))):
         cls = mix[rng.choice(len(mix), p=weights / weights.sum())]
         actor = new(cls, rider=True)
         for _try in range(20):
@@ -228,9 +252,12 @@ def place_actors(cfg: SceneConfig, grid: Grid, static: np.ndarray, duration: flo
             if placer.add(plan, 1.0):
                 break
 
-    # Moving bicycles near the right edge of the outer lane.
-    edge = lay.lanes_per_direction * lay.lane_width - 0.55
-    for _ in range(int(round(a.bicycles_per_km * km))):
+
+def _place_moving_bicycles(cfg: SceneConfig, grid: Grid, placer: Placer, new: ActorMaker,
+                           rng: np.random.Generator) -> None:
+    """Moving bicycles near the right edge of the outer lane."""
+    edge = cfg.layout.lanes_per_direction * cfg.layout.lane_width - 0.55
+    for _ in range(int(round(cfg.actors.bicycles_per_km * grid.road_km))):
         actor = new("bicycle", rider=True)
         for _try in range(20):
             origin, heading, length, _ = _lane(grid, rng, lateral=edge)
@@ -239,34 +266,36 @@ def place_actors(cfg: SceneConfig, grid: Grid, static: np.ndarray, duration: flo
             if placer.add(plan, 0.5):
                 break
 
-    # Parked bicycles along the building side of the sidewalks, across the walking direction.
-    for _ in range(int(round(a.parked_bicycles_per_km * km))):
+
+def _place_parked_bicycles(cfg: SceneConfig, grid: Grid, placer: Placer, new: ActorMaker,
+                           rng: np.random.Generator) -> None:
+    """Parked bicycles along the building side of the sidewalks, across the walking direction."""
+    for _ in range(int(round(cfg.actors.parked_bicycles_per_km * grid.road_km))):
         actor = new("bicycle", parked=True, rider=False)
         for _try in range(20):
-            origin, heading, length = _sidewalk_line(grid, rng, hw + sw - 1.0)
+            origin, heading, length = _sidewalk_line(grid, rng, grid.road_half_width + cfg.layout.sidewalk_width - 1.0)
             s = rng.uniform(5, length - 5)
             plan = Plan(actor, origin + s * np.array([np.cos(heading), np.sin(heading)]),
                         heading + np.pi / 2, 0.0, 0.0, 0.0, z_ground=CURB_HEIGHT)
             if grid.ground_z(plan.xy(0.0)) > 0 and placer.add(plan, 0.1):
                 break
 
-    # Pedestrians: standing, walking along sidewalks, or walking towards a crosswalk.
-    walk_lo, walk_hi = hw + 1.3, hw + sw - 2.0
-    for _ in range(int(round(a.pedestrians_per_km * km))):
+
+def _place_pedestrians(cfg: SceneConfig, grid: Grid, placer: Placer, new: ActorMaker,
+                       rng: np.random.Generator) -> None:
+    """Pedestrians: standing, walking along sidewalks, or walking towards a crosswalk."""
+    hw = grid.road_half_width
+    walk_lo, walk_hi = hw + 1.3, hw + cfg.layout.sidewalk_width - 2.0
+    for _ in range(int(round(cfg.actors.pedestrians_per_km * grid.road_km))):
         actor = new("pedestrian")
-        standing = rng.random() < a.standing_fraction
-        crossing = not standing and rng.random() < a.crossing_fraction
+        standing = rng.random() < cfg.actors.standing_fraction
+        crossing = not standing and rng.random() < cfg.actors.crossing_fraction
         for _try in range(30):
             origin, heading, length = _sidewalk_line(grid, rng, rng.uniform(walk_lo, walk_hi))
-            if crossing:   # start a few metres before the curb of a road this line crosses
-                along_x = abs(np.cos(heading)) > 0.5
-                crosses = grid.xs if along_x else grid.ys
-                o, sgn = (origin[0], np.sign(np.cos(heading))) if along_x else (origin[1], np.sign(np.sin(heading)))
-                s_cross = (crosses - o) * sgn
-                s_cross = s_cross[(s_cross > hw + 8) & (s_cross < length - hw - 8)]
-                if len(s_cross) == 0:
+            if crossing:
+                s = _before_crossing(grid, origin, heading, length, rng)
+                if s is None:
                     continue
-                s = float(rng.choice(s_cross)) - hw - rng.uniform(0.5, 6.0)
             else:
                 s = rng.uniform(5, length - 5)
             v = 0.0 if standing else rng.uniform(*SPEED["pedestrian"])
@@ -278,4 +307,18 @@ def place_actors(cfg: SceneConfig, grid: Grid, static: np.ndarray, duration: flo
                 plan = Plan(actor, origin, heading, s, length, v, priority=actor.id)
             if grid.ground_z(plan.xy(plan.s0)) > 0 and placer.add(plan, 0.2):
                 break
-    return placer.plans
+
+
+def _before_crossing(grid: Grid, origin: np.ndarray, heading: float, length: float,
+                     rng: np.random.Generator) -> float | None:
+    """Arc length a few metres before the curb of a road that the sidewalk line crosses, or None
+    if it crosses none far enough from its ends."""
+    hw = grid.road_half_width
+    along_x = abs(np.cos(heading)) > 0.5
+    crosses = grid.xs if along_x else grid.ys
+    o, sgn = (origin[0], np.sign(np.cos(heading))) if along_x else (origin[1], np.sign(np.sin(heading)))
+    s_cross = (crosses - o) * sgn
+    s_cross = s_cross[(s_cross > hw + 8) & (s_cross < length - hw - 8)]
+    if len(s_cross) == 0:
+        return None
+    return float(rng.choice(s_cross)) - hw - rng.uniform(0.5, 6.0)

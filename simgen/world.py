@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import geometry as geo
+from . import geometry
 
 if TYPE_CHECKING:          # only named in annotations; building a world imports it anyway
     import trimesh
@@ -103,7 +103,7 @@ class World:
 
     def ego_pose(self, t) -> np.ndarray:
         """T_global_from_ego at time(s) ``t``: (4, 4) for a scalar, (m, 4, 4) for an array."""
-        T = geo.poses_2d(*self.ego_xy_yaw(t))
+        T = geometry.poses_2d(*self.ego_xy_yaw(t))
         return T[0] if np.ndim(t) == 0 else T
 
 

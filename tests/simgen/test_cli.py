@@ -16,6 +16,59 @@ def _bad(tmp_path, *args):
     return lines[-1]
 
 
+def _one_line(tmp_path, *args) -> str:
+    """`simgen make` on bad input: exit 2, exactly one line on stderr, nothing written."""
+    out = tmp_path / "out"
+    proc = run_simgen("make", "--out", out, *args, check=False)
+    assert proc.returncode == 2, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert not out.exists(), "nothing may be written on bad input"
+    return proc.stderr.strip()
+
+
+@pytest.mark.parametrize("text, field, value", [
+    ("lidar:\n  max_range: .nan\n", "lidar.max_range", "nan"),
+    ("camera:\n  zfar: .inf\n", "camera.zfar", "inf"),
+    ("layout:\n  building_height: [-.inf, 30]\n", "layout.building_height", "-inf"),
+])
+def test_non_finite_preset_value(tmp_path, text, field, value):
+    preset = tmp_path / "bad.yaml"
+    preset.write_text(text)
+    line = _one_line(tmp_path, "--scenes", "1", "--preset", preset)
+    assert line == f"simgen: error: {preset}: {field}: expected a finite number, got {value}"
+
+
+def test_yaml_syntax_error_in_a_preset(tmp_path):
+    preset = tmp_path / "bad.yaml"
+    preset.write_text("lidar:\n  max_range: [70\n  min_range: 1\n")
+    line = _one_line(tmp_path, "--scenes", "1", "--preset", preset)
+    assert line.startswith(f"simgen: error: {preset}: not valid YAML at line 3, column ")
+
+
+def test_non_finite_flag(tmp_path):
+    line = _one_line(tmp_path, "--scenes", "1", "--preset", "tiny", "--fog-visibility", "nan")
+    assert line == "simgen: error: --fog-visibility: expected a finite number, got nan"
+
+
+def test_an_internal_error_keeps_its_traceback(monkeypatch, capsys):
+    """Only input errors become one line and exit 2: a bug (here a ValueError from inside the
+    command) propagates with its traceback."""
+    from simgen import cli
+    from simgen.errors import DataError
+
+    def broken(args):
+        raise ValueError("an internal shape mismatch")
+    monkeypatch.setattr(cli, "_run", broken)
+    with pytest.raises(ValueError, match="an internal shape mismatch"):
+        cli.main(["presets"])
+
+    def bad_data(args):
+        raise DataError("x.json: damaged")
+    monkeypatch.setattr(cli, "_run", bad_data)
+    assert cli.main(["presets"]) == 2
+    assert capsys.readouterr().err == "simgen: error: x.json: damaged\n"
+
+
 def test_unknown_preset_key(tmp_path):
     preset = tmp_path / "bad.yaml"
     preset.write_text("actors:\n  pedestrians_per_km: 10\n  unicorns: 3\n")

@@ -5,8 +5,8 @@ import dataclasses
 
 import pytest
 
-from simgen.config import (ConfigError, LidarConfig, SceneConfig, list_presets, load_preset,
-                           with_resolution)
+from simgen.config import LidarConfig, SceneConfig, list_presets, load_preset, with_degradation, with_resolution
+from simgen.errors import ConfigError, InputError
 
 
 def write(tmp_path, text, name="preset.yaml"):
@@ -20,7 +20,7 @@ def config_error(path_or_name) -> str:
         load_preset(str(path_or_name))
     msg = str(info.value)
     assert "\n" not in msg and msg.strip() == msg and msg, repr(msg)
-    assert isinstance(info.value, ValueError)
+    assert isinstance(info.value, InputError)
     return msg
 
 
@@ -87,6 +87,11 @@ def test_valid_custom_file(tmp_path):
     # [min, max] given as [max, min]
     ("layout:\n  building_height: [30, 6]\n", "layout.building_height", ["min, max"]),
     ("ego:\n  speed: [12, 4]\n", "ego.speed", ["min, max"]),
+    # not finite: NaN passes every comparison, so the range check alone would let it through
+    ("lidar:\n  min_range: .nan\n", "lidar.min_range", ["finite", "nan"]),
+    ("layout:\n  block_pitch: .inf\n", "layout.block_pitch", ["finite", "inf"]),
+    ("ego:\n  speed: [4, .nan]\n", "ego.speed", ["finite"]),
+    ("actors:\n  vehicle_mix: {car: .nan}\n", "actors.vehicle_mix.car", ["finite"]),
     ("layout:\n  building_gap: [8.0, 1.0]\n", "layout.building_gap", ["min, max"]),
 ])
 def test_bad_field_is_one_line_naming_file_and_field(tmp_path, text, field, extra):
@@ -141,6 +146,13 @@ def test_with_resolution():
         msg = str(info.value)
         assert "\n" not in msg and f"{w}x{h}" in msg
     assert with_resolution(cfg, 16, 4096).camera.resolution == (16, 4096)
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), float("-inf")])
+def test_non_finite_flag_value(value):
+    with pytest.raises(ConfigError) as info:
+        with_degradation(load_preset("tiny"), fog_visibility=value)
+    assert str(info.value) == f"--fog-visibility: expected a finite number, got {value!r}"
 
 
 def test_configs_are_frozen():

@@ -9,8 +9,8 @@ import pytest
 from conftest import TINY_ARGS, run_simgen
 from scipy.special import lambertw
 
-from simgen import degrade as D
-from simgen import lidarseg as LS
+from simgen import degrade
+from simgen import lidarseg
 from simgen.config import load_preset, with_degradation
 from simgen.lidar import LidarScanner
 from simgen.pipeline import MakeSettings, build_world, degrade_sweep
@@ -22,19 +22,19 @@ def test_camera_fog_is_koschmieder_exactly():
     J = rng.integers(0, 256, (40, 60, 3)).astype(np.uint8)
     d = rng.uniform(0.5, 300.0, (40, 60))
     d[:5] = 0.0                                          # sky: no hit
-    alpha = D.FOG_ALPHA[4]
-    out = D.fog_image(J, d, alpha)
+    alpha = degrade.FOG_ALPHA[4]
+    out = degrade.fog_image(J, d, alpha)
     t = np.where(d > 0, np.exp(-alpha * d), 0.0)[..., None]
-    expected = J * t + D.AIRLIGHT * (1 - t)                  # float64 reference
+    expected = J * t + degrade.AIRLIGHT * (1 - t)                  # float64 reference
     assert np.abs(out - expected).max() <= 0.5 + 1e-3       # the formula, rounded to the nearest level
-    assert (out[:5] == np.round(D.AIRLIGHT).astype(np.uint8)).all()      # the sky is all airlight
-    np.testing.assert_array_equal(D.fog_image(J, d, 0.0)[5:], J[5:])     # alpha 0 changes nothing
+    assert (out[:5] == np.round(degrade.AIRLIGHT).astype(np.uint8)).all()      # the sky is all airlight
+    np.testing.assert_array_equal(degrade.fog_image(J, d, 0.0)[5:], J[5:])     # alpha 0 changes nothing
 
 
 def test_visibility_and_alpha_are_inverse():
-    for a in D.FOG_ALPHA[1:]:
-        assert D.alpha_of_visibility(D.visibility_of(a)) == pytest.approx(a)
-    assert D.visibility_of(0.06) == pytest.approx(math.log(20) / 0.06)
+    for a in degrade.FOG_ALPHA[1:]:
+        assert degrade.alpha_of_visibility(degrade.visibility_of(a)) == pytest.approx(a)
+    assert degrade.visibility_of(0.06) == pytest.approx(math.log(20) / 0.06)
 
 
 def _synthetic_returns(ranges, rho_cos):
@@ -51,10 +51,10 @@ def test_lidar_fog_hard_returns_attenuate_as_exp_minus_2_alpha_r():
     rho_cos = np.full(21, 0.9)
     pts, dirs = _synthetic_returns(ranges, rho_cos)
     ref = 2.0                                          # intensity unsaturated: P ref^2 < 1
-    alpha = D.FOG_ALPHA[2]
+    alpha = degrade.FOG_ALPHA[2]
     p_hard = rho_cos / ranges**2 * np.exp(-2 * alpha * ranges)
-    assert (p_hard > D.fog_table(alpha)[1].max()).all()                 # the fog cannot win
-    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, alpha, 1e-9, ref, np.random.default_rng(0))
+    assert (p_hard > degrade.fog_table(alpha)[1].max()).all()                 # the fog cannot win
+    out, is_fog = degrade.fog_lidar(pts, rho_cos, ranges, dirs, alpha, 1e-9, ref, np.random.default_rng(0))
     assert not is_fog.any() and len(out) == 21
     np.testing.assert_allclose(out[:, :3], pts[:, :3])                  # not moved
     clean = 255 * rho_cos / ranges**2 * ref**2
@@ -66,48 +66,48 @@ def test_lidar_fog_moves_weak_far_returns_to_the_fog_range_along_the_ray():
     ranges = np.array([60.0, 80.0])
     rho_cos = np.array([0.05, 0.05])
     pts, dirs = _synthetic_returns(ranges, rho_cos)
-    out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 5e-6, 6.0, np.random.default_rng(0))
+    out, is_fog = degrade.fog_lidar(pts, rho_cos, ranges, dirs, degrade.FOG_ALPHA[5], 5e-6, 6.0, np.random.default_rng(0))
     assert is_fog.all()
     r = np.linalg.norm(out[:, :3], axis=1)
     assert ((r > 1.0) & (r < 3.0)).all()                                # near the sensor
     np.testing.assert_allclose(out[:, :3] / r[:, None], dirs, atol=1e-6)  # on the same ray
     # A return lost to attenuation when the fog response is below the threshold too.
-    out2, _ = D.fog_lidar(pts, rho_cos, ranges, dirs, D.FOG_ALPHA[5], 1.0, 6.0, np.random.default_rng(0))
+    out2, _ = degrade.fog_lidar(pts, rho_cos, ranges, dirs, degrade.FOG_ALPHA[5], 1.0, 6.0, np.random.default_rng(0))
     assert len(out2) == 0
 
 
 def test_lidar_fog_keeps_the_clear_weather_threshold():
     """A hard return the fog cannot beat is kept exactly when exp(-2 alpha R0) rho cos / R0^2
     reaches min_return: fog raises no threshold."""
-    alpha = D.FOG_ALPHA[3]
+    alpha = degrade.FOG_ALPHA[3]
     ranges = np.array([10.0, 20.0, 30.0])
-    t0 = 2 * D.fog_table(alpha)[1].max()                                # above every fog echo
+    t0 = 2 * degrade.fog_table(alpha)[1].max()                                # above every fog echo
     for factor, kept in ((1.01, True), (0.99, False)):
         rho_cos = factor * t0 * ranges**2 * np.exp(2 * alpha * ranges)   # p_hard = factor * t0
         pts, dirs = _synthetic_returns(ranges, rho_cos)
-        out, is_fog = D.fog_lidar(pts, rho_cos, ranges, dirs, alpha, t0, 6.0, np.random.default_rng(0))
+        out, is_fog = degrade.fog_lidar(pts, rho_cos, ranges, dirs, alpha, t0, 6.0, np.random.default_rng(0))
         assert len(out) == (3 if kept else 0) and not is_fog.any()
 
 
-@pytest.mark.parametrize("alpha", [D.FOG_ALPHA[1], D.FOG_ALPHA[5]])
+@pytest.mark.parametrize("alpha", [degrade.FOG_ALPHA[1], degrade.FOG_ALPHA[5]])
 def test_fog_table_is_the_soft_target_integral(alpha):
     """The table against a direct quadrature of the soft-target echo (degrade.py's derivation):
     pi beta int sin^2(pi (R - R') / (c tau_H)) xi(R') exp(-2 alpha R') / R'^2 dR' over the fog in
     front of the target (R' <= R0), its maximum over the waveform range R, reported at R - c tau_H / 2."""
-    width = D.C_LIGHT * D.TAU_H
-    beta = D.BETA_PER_INV_MOR / D.visibility_of(alpha)
-    r_tab, best, fog_r = D.fog_table(alpha)
+    width = degrade.C_LIGHT * degrade.TAU_H
+    beta = degrade.BETA_PER_INV_MOR / degrade.visibility_of(alpha)
+    r_tab, best, fog_r = degrade.fog_table(alpha)
     dr = 0.004
     for R0 in (1.2, 2.0, 3.0, 4.0, 10.0, 60.0):
         # The fog in front of the target (midpoints); waveform ranges up to 15 m, past which the
         # echo only falls (1/R^2 and exp(-2 alpha R), checked at the end).
         Rp = np.arange(dr / 2, min(R0, 15.0), dr)
-        h = np.pi * beta * D.crossover(Rp) * np.exp(-2 * alpha * Rp) / Rp**2
+        h = np.pi * beta * degrade.crossover(Rp) * np.exp(-2 * alpha * Rp) / Rp**2
         R = np.arange(0.0, min(R0 + width, 15.0), 0.01)[:, None]
         s = R - Rp[None, :]
         w = np.where((s >= 0) & (s <= width), np.sin(np.pi * s / width) ** 2, 0.0)
         wave = (w * h).sum(1) * dr
-        k = int(round(R0 / D.TABLE_STEP))
+        k = int(round(R0 / degrade.TABLE_STEP))
         assert best[k] == pytest.approx(wave.max(), rel=0.01), R0
         assert fog_r[k] == pytest.approx(R[np.argmax(wave), 0] - width / 2, abs=0.03), R0
     # Far from the sensor the echo of fog alone is the textbook volume return pi beta (c tau_H / 2) / R^2.
@@ -132,7 +132,7 @@ BANDS = (0.0, 10.0, 30.0, 50.0, np.inf)
 def _fog_by_ray(sweep, cfg, alpha):
     """Run fog with each ray's index carried as an extra column: (delivered ray indices, is_fog)."""
     pts = np.concatenate([sweep.points_lidar, np.arange(len(sweep.range), dtype=np.float32)[:, None]], axis=1)
-    out, is_fog = D.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, alpha,
+    out, is_fog = degrade.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, alpha,
                               cfg.lidar.min_return, cfg.lidar.intensity_ref_range, np.random.default_rng(1))
     return out[:, 5].astype(np.int64), is_fog, out
 
@@ -145,7 +145,7 @@ def test_lidar_fog_follows_the_lidar_equation_on_a_sweep(clean_sweep):
     band = np.digitize(sweep.range, BANDS[1:-1])
     rho_cos = sweep.rho * sweep.cos_inc
     loss, n_fog = [], []
-    for alpha in D.FOG_ALPHA:
+    for alpha in degrade.FOG_ALPHA:
         p_hard = rho_cos / sweep.range**2 * np.exp(-2 * alpha * sweep.range)     # the lidar equation
         expected = p_hard >= cfg.lidar.min_return
         ray, is_fog, out = _fog_by_ray(sweep, cfg, alpha)
@@ -179,14 +179,14 @@ def test_lidar_fog_on_a_scene_labels_and_places_the_fog_returns(clean_sweep):
     for sev in range(1, 6):
         c = with_degradation(cfg, fog=sev)
         pts, seg = degrade_sweep(sweep, c, np.zeros(0, int), np.random.default_rng(1))
-        same, is_fog = D.fog_lidar(sweep.points_lidar, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar,
-                                   D.FOG_ALPHA[sev], cfg.lidar.min_return, cfg.lidar.intensity_ref_range,
+        same, is_fog = degrade.fog_lidar(sweep.points_lidar, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar,
+                                   degrade.FOG_ALPHA[sev], cfg.lidar.min_return, cfg.lidar.intensity_ref_range,
                                    np.random.default_rng(1))
         np.testing.assert_array_equal(same, pts)
         # Fog returns are labelled noise; the hard returns keep their surface's class.
-        assert (seg[is_fog] == LS.NOISE).all() and (seg[~is_fog] != LS.NOISE).all()
+        assert (seg[is_fog] == lidarseg.NOISE).all() and (seg[~is_fog] != lidarseg.NOISE).all()
         # They sit near the sensor: the fog's echo peaks a few metres out, read as the pulse's lead.
-        ray, _, _ = _fog_by_ray(sweep, cfg, D.FOG_ALPHA[sev])
+        ray, _, _ = _fog_by_ray(sweep, cfg, degrade.FOG_ALPHA[sev])
         r_fog = np.linalg.norm(pts[is_fog, :3] - (sweep.points_lidar[ray[is_fog], :3]
                                                   - sweep.dir_lidar[ray[is_fog]] * sweep.range[ray[is_fog], None]), axis=1)
         assert is_fog.any() and (r_fog > 1.0).all() and (r_fog < 2.5).all()
@@ -210,7 +210,7 @@ def test_one_alpha_drives_camera_and_lidar():
 
     def pixel(a):
         t = np.exp(-a * d)[..., None]
-        return np.round(J * t + D.AIRLIGHT * (1 - t))
+        return np.round(J * t + degrade.AIRLIGHT * (1 - t))
 
     assert np.abs(img - pixel(alpha)).max() <= 1.0 and np.abs(img - pixel(1.1 * alpha)).max() > 3.0
     n = 16
@@ -232,7 +232,8 @@ def test_one_alpha_drives_camera_and_lidar():
 
 
 def test_removed_fog_background_gain_is_refused(tmp_path):
-    from simgen.config import ConfigError, list_presets
+    from simgen.config import list_presets
+    from simgen.errors import ConfigError
     bad = tmp_path / "old.yaml"
     bad.write_text("lidar:\n  fog_background_gain: 200.0\n")
     with pytest.raises(ConfigError) as e:
@@ -245,7 +246,7 @@ def test_removed_fog_background_gain_is_refused(tmp_path):
 
 def test_beam_drop_and_sector(clean_sweep):
     cfg, sweep = clean_sweep
-    rings = D.choose_rings(5, np.random.default_rng(3))
+    rings = degrade.choose_rings(5, np.random.default_rng(3))
     pts, seg = degrade_sweep(sweep, with_degradation(cfg, beam_drop=5), rings, np.random.default_rng(1))
     keep = ~np.isin(sweep.points_lidar[:, 4], rings)
     np.testing.assert_array_equal(seg, sweep.label[keep])          # the labels follow their points
@@ -273,10 +274,10 @@ def test_beam_drop_and_sector(clean_sweep):
 
 def test_lens_dirt_is_deterministic_and_grows_with_severity():
     img = np.full((90, 160, 3), 200, np.uint8)
-    a = D.lens_dirt(img, 2, np.random.default_rng(5))
-    b = D.lens_dirt(img, 2, np.random.default_rng(5))
+    a = degrade.lens_dirt(img, 2, np.random.default_rng(5))
+    b = degrade.lens_dirt(img, 2, np.random.default_rng(5))
     np.testing.assert_array_equal(a, b)
-    covered = [int((np.abs(D.lens_dirt(img, s, np.random.default_rng(5)).astype(int) - 200).sum(-1) > 30).sum())
+    covered = [int((np.abs(degrade.lens_dirt(img, s, np.random.default_rng(5)).astype(int) - 200).sum(-1) > 30).sum())
                for s in (1, 3, 5)]
     assert 0 < covered[0] < covered[1] < covered[2]
 
@@ -336,7 +337,7 @@ def test_occluders_keep_every_object_and_only_lower_visibility_and_points(tmp_pa
 
 
 def test_occluders_never_touch_an_actor():
-    from simgen import geometry as geo
+    from simgen import geometry
     cfg = with_degradation(load_preset("tiny"), occlusion="heavy")
     for idx in range(3):
         world = build_world(MakeSettings(cfg, 3, 7, 3, "v1.0-sim"), idx)
@@ -349,20 +350,20 @@ def test_occluders_never_touch_an_actor():
             boxes = world.boxes_at(float(world.times[k]))
             a = np.repeat(new, len(boxes), 0)
             b = np.tile(boxes, (len(new), 1))
-            assert not geo.bev_overlap_pairwise(a, b).any()
+            assert not geometry.bev_overlap_pairwise(a, b).any()
 
 
 def test_hard_range_limit_is_where_the_target_stops_being_the_strongest_return():
     """The docs' detection range: the lidar equation's own limit (rho e^{-2 alpha R} / R^2 =
     min_return) where the threshold binds first, else the crossing with the fog's echo."""
-    for alpha in D.FOG_ALPHA[1:]:
-        r, p_fog, _ = D.fog_table(alpha)
+    for alpha in degrade.FOG_ALPHA[1:]:
+        r, p_fog, _ = degrade.fog_table(alpha)
         for rho, thr in ((0.1, 5e-6), (0.5, 5e-6), (0.5, 2e-3)):
-            lim = D.hard_range_limit(rho, alpha, thr)
+            lim = degrade.hard_range_limit(rho, alpha, thr)
             p = lambda R: rho / R**2 * np.exp(-2 * alpha * R)                # noqa: E731
-            k = int(round(lim / D.TABLE_STEP))
-            assert p(lim) >= max(thr, p_fog[k]) and p(lim + D.TABLE_STEP) < max(thr, p_fog[k + 1])
+            k = int(round(lim / degrade.TABLE_STEP))
+            assert p(lim) >= max(thr, p_fog[k]) and p(lim + degrade.TABLE_STEP) < max(thr, p_fog[k + 1])
             analytic = float(np.real(lambertw(alpha * math.sqrt(rho / thr)))) / alpha   # R e^{alpha R} = sqrt(rho/thr)
-            assert lim <= analytic + D.TABLE_STEP
+            assert lim <= analytic + degrade.TABLE_STEP
             if thr > p_fog.max():                                                # the threshold binds first
-                assert lim == pytest.approx(analytic, abs=D.TABLE_STEP)
+                assert lim == pytest.approx(analytic, abs=degrade.TABLE_STEP)

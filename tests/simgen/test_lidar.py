@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from simgen import geometry as geo
+from simgen import geometry
 from simgen.assets import Parts
 from simgen.config import LidarConfig, load_preset
 from simgen.layout import Grid
@@ -80,7 +80,7 @@ def room_exit(o, d, lo, hi):
 def to_ego(sweep):
     """Sensor-frame points and directions of a sweep -> ego frame (stationary ego at the origin)."""
     T = T_ego_from_lidar()
-    return geo.apply(T, sweep.points_lidar[:, :3].astype(np.float64)), sweep.dir_lidar @ T[:3, :3].T, T[:3, 3]
+    return geometry.apply(T, sweep.points_lidar[:, :3].astype(np.float64)), sweep.dir_lidar @ T[:3, :3].T, T[:3, 3]
 
 
 @pytest.fixture(scope="module")
@@ -99,15 +99,25 @@ def tiny_world():
 # ---------------------------------------------------------------------------------------------
 # Beam pattern
 
+# The HDL-32E's vertical angle per laser ID (degrees), as its user manual tabulates them, in
+# firing order: the two halves of the fan interleaved, 4/3 deg apart, rounded to 0.01 deg.
+HDL32E_VERTICAL_DEG = (-30.67, -9.33, -29.33, -8.00, -28.00, -6.67, -26.67, -5.33, -25.33, -4.00, -24.00, -2.67,
+                       -22.67, -1.33, -21.33, 0.00, -20.00, 1.33, -18.67, 2.67, -17.33, 4.00, -16.00, 5.33,
+                       -14.67, 6.67, -13.33, 8.00, -12.00, 9.33, -10.67, 10.67)
+
+
+def test_beam_elevations_are_the_hdl32e_table():
+    """Ring r is the r-th lowest laser: the elevations are the manual's, sorted, within 0.01 deg
+    (its rounding, and the even spread of the simulator's 41.34 deg against the manual's 4/3 deg
+    steps, which meet at both ends)."""
+    assert len(ELEVATIONS_DEG) == len(HDL32E_VERTICAL_DEG)
+    np.testing.assert_allclose(ELEVATIONS_DEG, np.sort(HDL32E_VERTICAL_DEG), atol=0.01)
+
+
 def test_ray_pattern():
     frac, ring, d = ray_pattern(LidarConfig())
-    assert len(frac) == len(ring) == len(d) == N_AZ * N_BEAMS == 34912
+    assert len(frac) == len(ring) == len(d) == N_AZ * len(HDL32E_VERTICAL_DEG) == 34912
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
-    assert N_BEAMS == 32
-    np.testing.assert_allclose(ELEVATIONS_DEG[[0, -1]], [-30.67, 10.67], atol=1e-9)
-    # "1.33-degree steps": 41.34 deg over 31 gaps is 1.3335 deg (the HDL-32E's 4/3 deg)
-    np.testing.assert_allclose(np.diff(ELEVATIONS_DEG), 41.34 / 31, atol=1e-9)
-    assert abs(41.34 / 31 - 1.33) < 0.005
     np.testing.assert_array_equal(np.bincount(ring), np.full(N_BEAMS, N_AZ))
     el = np.degrees(np.arcsin(d[:, 2]))
     np.testing.assert_allclose(el, ELEVATIONS_DEG[ring], atol=1e-9)
@@ -115,7 +125,7 @@ def test_ray_pattern():
     assert 0 < frac.min() and frac.max() < 1 and (np.diff(frac) >= 0).all()
     assert len(np.unique(frac)) == N_AZ
     az = np.arctan2(d[::N_BEAMS, 1], d[::N_BEAMS, 0])
-    step = np.degrees(np.abs(geo.wrap_angle(np.diff(az))))
+    step = np.degrees(np.abs(geometry.wrap_angle(np.diff(az))))
     np.testing.assert_allclose(step, 360.0 / N_AZ, atol=1e-9)
     # the step follows azimuth_step_deg
     assert len(ray_pattern(LidarConfig(azimuth_step_deg=1.0))[0]) == 360 * N_BEAMS
@@ -260,10 +270,10 @@ def test_default_range_limits_on_a_real_world(tiny_world):
     assert ids and ids <= annotated
     # no point inside the ego's footprint (any height)
     T_global_from_lidar = tiny_world.ego_pose(1.0) @ T_ego_from_lidar()
-    p = geo.apply(T_global_from_lidar, sweep.points_lidar[:, :3].astype(np.float64))
+    p = geometry.apply(T_global_from_lidar, sweep.points_lidar[:, :3].astype(np.float64))
     ego = tiny_world.boxes_at(1.0)[0].copy()
     ego[5] = 1e3
-    assert not geo.points_in_box_mask(p, ego).any()
+    assert not geometry.points_in_box_mask(p, ego).any()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -278,10 +288,10 @@ def test_no_returns_from_the_ego(ego_speed):
         assert len(sweep.range) == N_AZ * N_BEAMS
         assert (sweep.actor_id == 0).all()
         T = world.ego_pose(t) @ T_ego_from_lidar()
-        p = geo.apply(T, sweep.points_lidar[:, :3].astype(np.float64))
+        p = geometry.apply(T, sweep.points_lidar[:, :3].astype(np.float64))
         ego = world.boxes_at(t)[0].copy()
         ego[5] = 1e3                                   # the whole column above the footprint
-        assert not geo.points_in_box_mask(p, ego).any()
+        assert not geometry.points_in_box_mask(p, ego).any()
         assert p[:, 2].min() > -1e-4                    # nothing below the floor either
 
 
@@ -293,9 +303,9 @@ def test_annotated_actor_next_to_the_ego_is_seen():
     hit = sweep.actor_id == 1
     assert hit.sum() > 100
     assert set(np.unique(sweep.actor_id)) == {0, 1}
-    p = geo.apply(T_ego_from_lidar(), sweep.points_lidar[:, :3].astype(np.float64))
+    p = geometry.apply(T_ego_from_lidar(), sweep.points_lidar[:, :3].astype(np.float64))
     box = world.boxes_at(0.5)[1]
-    inside = geo.points_in_box_mask(p, box + np.r_[0, 0, 0, 0.02, 0.02, 0.02, 0])
+    inside = geometry.points_in_box_mask(p, box + np.r_[0, 0, 0, 0.02, 0.02, 0.02, 0])
     assert inside[hit].all()                           # the car's points lie in its box
     assert np.abs(p[inside & ~hit, 2]).max() < 1e-4     # the rest in the box is floor under it
 
@@ -359,17 +369,17 @@ def test_embree_matches_brute_force(tiny_world):
 def test_plane_hits_on_a_grazing_ray_does_not_raise():
     """A ray along its triangle's plane (cos 0) gets a non-finite distance, as numpy would give,
     not a ZeroDivisionError from the compiled kernel; tfar turns a far hit into a miss."""
-    from simgen import lidar_kernels as K
+    from simgen import lidar_kernels
     normals, plane = np.array([[0.0, 0.0, 1.0]]), np.array([0.0])
     tri = np.array([0, 0, -1])
     origins = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     dirs = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-    dist, cos = K.plane_hits(tri.copy(), origins, dirs, normals, plane, np.zeros(0))
+    dist, cos = lidar_kernels.plane_hits(tri.copy(), origins, dirs, normals, plane, np.zeros(0))
     assert dist[0] == 5.0 and cos[0] == 1.0
     assert not np.isfinite(dist[1]) and cos[1] == 0.0
     assert dist[2] == np.inf and cos[2] == 0.0
     far = tri.copy()
-    dist, cos = K.plane_hits(far, origins, dirs, normals, plane, np.array([4.0, 9.0, 9.0]))
+    dist, cos = lidar_kernels.plane_hits(far, origins, dirs, normals, plane, np.array([4.0, 9.0, 9.0]))
     assert far[0] == -1 and dist[0] == np.inf and cos[0] == 0.0
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from simgen import geometry as geo
+from simgen import geometry
 from simgen.config import load_preset
 from simgen.scene import keyframe_times, sample_world
 from simgen.world import CLASSES
@@ -27,7 +27,7 @@ def worlds():
 
 
 def _overlapping_pairs(a, b, same=False):
-    """All (i, j) where geo.bev_overlap(a, b)[i, j] (margin 0). Only the pairs whose bounding circles
+    """All (i, j) where geometry.bev_overlap(a, b)[i, j] (margin 0). Only the pairs whose bounding circles
     meet (a necessary condition) go through the exact test, bev_overlap's pairwise kernel."""
     ra, rb = np.hypot(a[:, 3], a[:, 4]) / 2, np.hypot(b[:, 3], b[:, 4]) / 2
     d = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
@@ -35,7 +35,7 @@ def _overlapping_pairs(a, b, same=False):
     if same:
         cand = np.triu(cand, 1)
     i, j = np.nonzero(cand)
-    hit = geo.bev_overlap_pairwise(a[i], b[j], margin=0.0)
+    hit = geometry.bev_overlap_pairwise(a[i], b[j], margin=0.0)
     return list(zip(i[hit], j[hit]))
 
 
@@ -166,10 +166,10 @@ def test_boxes_hold_their_meshes(worlds):
 
 def test_every_static_face_has_a_lidarseg_class(worlds):
     """The static world's faces all carry one of the static classes (none is left at noise)."""
-    from simgen import lidarseg as LS
+    from simgen import lidarseg
     for world in worlds.values():
         labels = world.static_mesh.metadata["lidarseg"]
         assert labels.shape == (len(world.static_mesh.faces),)
-        assert set(np.unique(labels).tolist()) <= set(LS.STATIC) and (labels != LS.NOISE).all()
+        assert set(np.unique(labels).tolist()) <= set(lidarseg.STATIC) and (labels != lidarseg.NOISE).all()
         # Each surface kind is there (lawns or plazas, whichever this world drew).
-        assert {LS.ROAD, LS.SIDEWALK, LS.MANMADE, LS.VEGETATION} <= set(np.unique(labels).tolist())
+        assert {lidarseg.ROAD, lidarseg.SIDEWALK, lidarseg.MANMADE, lidarseg.VEGETATION} <= set(np.unique(labels).tolist())
