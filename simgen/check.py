@@ -5,8 +5,11 @@ import json
 from collections import Counter
 from pathlib import Path
 
+import cv2
+import numpy as np
+
 from .errors import DataError
-from .writer import TABLES
+from .writer import DENSE_DIR, TABLES, dense_label_files
 
 # table -> [(field, table it must reference)]; "" is allowed where a chain ends.
 REFERENCES = {
@@ -88,7 +91,7 @@ def find_problems(dataroot: Path, tables: dict[str, list[dict]]) -> list[str]:
             magic = b"\xff\xd8\xff" if fmt == "jpg" else b"\x89PNG"
             if not head.startswith(magic):
                 problems.append(f"{fname}: not a {fmt} file")
-    return problems + _lidarseg_problems(dataroot, tables)
+    return problems + _lidarseg_problems(dataroot, tables) + _dense_label_problems(dataroot, tables)
 
 
 def _lidarseg_problems(dataroot: Path, tables: dict[str, list[dict]]) -> list[str]:
@@ -103,6 +106,27 @@ def _lidarseg_problems(dataroot: Path, tables: dict[str, list[dict]]) -> list[st
             n_points = (Path(dataroot) / pcd).stat().st_size // 20
             if path.stat().st_size != n_points:
                 problems.append(f"{rec['filename']}: {path.stat().st_size} labels for the {n_points} points of {pcd}")
+    return problems
+
+
+def _dense_label_problems(dataroot: Path, tables: dict[str, list[dict]]) -> list[str]:
+    """When the set has dense labels (a ``dense/`` folder): each camera image's depth and class
+    images are present and decode as uint16 and uint8 images of the camera image's size."""
+    if not (Path(dataroot) / DENSE_DIR).is_dir():
+        return []
+    problems = []
+    cameras = [r for r in tables["sample_data"] if r.get("fileformat") == "jpg"]
+    for rec in cameras:
+        for rel, dtype in zip(dense_label_files(rec["filename"]), (np.uint16, np.uint8)):
+            path = Path(dataroot) / rel
+            if not path.is_file():
+                problems.append(f"{rel}: missing file")
+                continue
+            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if img is None or img.dtype != dtype or img.shape != (rec["height"], rec["width"]):
+                found = "not an image" if img is None else f"{img.dtype} {img.shape}"
+                problems.append(f"{rel}: expected a {np.dtype(dtype).name} image of {rec['height']}x{rec['width']} "
+                                f"(rows x columns), found {found}")
     return problems
 
 

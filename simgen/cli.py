@@ -69,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     mk = sub.add_parser("make", help="generate a dataset (resumes an interrupted run in the same --out)",
                         description="Generate N scenes into DIR/<version>/ (tables), DIR/samples, DIR/sweeps "
-                                    "and DIR/maps. Rerunning the same command after an interruption finishes "
+                                    "and DIR/maps (and DIR/dense with --dense-labels). Rerunning the same command after an interruption finishes "
                                     "the missing scenes; the result is byte-identical to an uninterrupted run.")
     mk.add_argument("--scenes", type=_positive_int("--scenes"), required=True, help="number of scenes")
     mk.add_argument("--out", type=Path, required=True, help="dataroot to write")
@@ -93,6 +93,10 @@ def build_parser() -> argparse.ArgumentParser:
     mk.add_argument("--renderer", choices=("pyrender", "mitsuba"), default=None,
                     help="camera renderer [preset's: pyrender]; mitsuba path-traces (seconds per image)")
     mk.add_argument("--spp", type=int, default=None, help="Mitsuba samples per pixel [preset's: 16]")
+    mk.add_argument("--dense-labels", action="store_true",
+                    help="also write, beside each camera image samples/CAM_X/NAME.jpg, its z-depth "
+                         "dense/CAM_X/NAME_depth.png (uint16, metres x 256, 0 = no surface) and its "
+                         "nuScenes-lidarseg class per pixel dense/CAM_X/NAME_seg.png (uint8, 0 = sky)")
     dg = mk.add_argument_group("degradation (overrides the preset's 'degrade' section; labels stay clean, "
                                "so a degraded run pairs with the clean run of the same seed)")
     dg.add_argument("--fog", type=int, default=None, metavar="0-5",
@@ -172,7 +176,7 @@ def _make(args) -> int:
         parse_address(args.ray)
     check_writable(args.out)
     settings = MakeSettings(cfg, args.scenes, args.seed, args.samples_per_scene, args.version,
-                            args.val_fraction, args.gl)
+                            args.val_fraction, args.gl, args.dense_labels)
     summary = make(settings, args.out, args.workers, progress=not args.quiet, ray=args.ray)
     print(f"simgen: {summary['scenes']} scenes, {summary['samples']} samples, "
           f"{summary['tables']['sample_annotation']} annotations in {args.out}/{args.version} "

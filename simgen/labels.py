@@ -1,4 +1,5 @@
-"""Labels measured on the sensor data: num_lidar_pts, visibility and attributes.
+"""Labels measured on the sensor data: num_lidar_pts, visibility, attributes and the dense
+per-pixel labels.
 
 ``num_lidar_pts`` is counted exactly as the devkit counts it on the written files: the float32
 points of the key-frame sweep, and the annotation box moved into the sensor frame through the
@@ -9,6 +10,10 @@ Visibility is the fraction of an object's camera-facing surface that the six cam
 sample that faces a camera and lands inside its image counts, and it is visible when the
 rendered id at its pixel is the actor's own id. The fraction is binned as nuScenes does
 (0-40, 40-60, 60-80, 80-100 %).
+
+Dense labels (``simgen make --dense-labels``) are two images per camera image: the z-depth of
+the first surface at each pixel, in KITTI's uint16 convention, and its nuScenes-lidarseg class,
+given by the function that labels the lidar points (:func:`simgen.lidarseg.classes`).
 """
 from __future__ import annotations
 
@@ -16,11 +21,14 @@ import numpy as np
 from pyquaternion import Quaternion
 
 from . import geometry
-from .world import CYCLES, Actor
+from . import lidarseg
+from .camera import STATIC_TILE, static_tiles
+from .world import CYCLES, Actor, World
 
 VISIBILITY_BINS = np.array([0.4, 0.6, 0.8])
 MOVING_SPEED = {"pedestrian": 0.2}   # m/s above which an actor counts as moving
 DEFAULT_MOVING_SPEED = 0.3
+DEPTH_SCALE = 256.0                  # KITTI depth maps: uint16 = metres x 256
 
 
 def count_points_in_boxes(points_lidar: np.ndarray, anns: list[dict], ego_pose: dict, calib: dict) -> list[int]:
@@ -123,3 +131,59 @@ def attribute(actor: Actor, speed: float) -> str | None:
             return "vehicle.parked"
         return "vehicle.moving" if moving else "vehicle.stopped"
     return None
+
+
+# ---- dense labels ------------------------------------------------------------------------------
+
+def depth_image(depth: np.ndarray) -> np.ndarray:
+    """(H, W) float32 camera-frame z (m), 0 where nothing was hit -> (H, W) uint16 z x 256,
+    rounded; 0 where nothing was hit or where z x 256 passes the uint16 range (beyond 255.99 m),
+    as in KITTI's depth maps, whose readers take 0 for "no depth"."""
+    scaled = np.rint(depth.astype(np.float32, copy=False) * np.float32(DEPTH_SCALE))
+    return np.where(scaled <= np.iinfo(np.uint16).max, scaled, 0).astype(np.uint16)
+
+
+def face_classes(world: World, face_owner: np.ndarray) -> np.ndarray:
+    """The lidarseg class of every face the camera renderer draws (:class:`simgen.camera.Renderer`
+    after ``set_world(world)``), indexed as its id pass indexes them: (F,) uint8, 0 for the sky.
+
+    The renderer's face table is the sky, then the static world (its static mesh and the actors
+    that never move) in tiles of ``STATIC_TILE`` metres, then each moving actor; it keeps the
+    actor id of each face (``face_owner``, (F,) int, 0 for the sky and the static mesh) but not
+    the static mesh's surface classes, so the static part's order is rebuilt here the way the
+    renderer builds it, and checked against ``face_owner``.
+    """
+    static_class, static_owner, triangles = _static_faces(world)
+    order = np.concatenate(static_tiles(triangles, STATIC_TILE))
+    n_static = len(order)
+    if len(face_owner) < 1 + n_static or np.any(face_owner[1:1 + n_static] != static_owner[order]):
+        raise RuntimeError("the camera renderer's face table is not in the order labels.face_classes rebuilds")
+    surface = np.zeros(len(face_owner), np.uint8)                 # sky and moving actors: read by id
+    surface[1:1 + n_static] = static_class[order]
+    return lidarseg.classes(np.asarray(face_owner), surface, lidarseg.class_of_id(world))
+
+
+def _static_faces(world: World) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The static world as the renderer merges it: the static mesh's faces, then those of each
+    annotated actor that never moves, posed at t = 0. Returns per face its surface class (F,)
+    uint8 (0 for the actors: they are labelled by id), its actor id (F,) int32 (0 for the static
+    mesh) and its (F, 3, 3) global triangle."""
+    sm = world.static_mesh
+    classes = [np.asarray(sm.metadata["lidarseg"], np.uint8)]
+    owners = [np.zeros(len(sm.faces), np.int32)]
+    triangles = [np.asarray(sm.triangles)]
+    moving = world.speed.max(axis=1) > 0
+    boxes = world.boxes_at(0.0)
+    for i, a in enumerate(world.actors):
+        if a.annotate and not moving[i]:
+            T_global_from_box = geometry.pose_2d(boxes[i, 0], boxes[i, 1], boxes[i, 6], boxes[i, 2])
+            triangles.append(np.asarray(a.mesh.triangles) @ T_global_from_box[:3, :3].T + T_global_from_box[:3, 3])
+            classes.append(np.zeros(len(a.mesh.faces), np.uint8))
+            owners.append(np.full(len(a.mesh.faces), a.id, np.int32))
+    return np.concatenate(classes), np.concatenate(owners), np.concatenate(triangles)
+
+
+def seg_image(face: np.ndarray, face_class: np.ndarray) -> np.ndarray:
+    """(H, W) rendered face indices (:class:`simgen.camera.IdImage` ``.face``) -> (H, W) uint8
+    lidarseg class per pixel, 0 (void) where the sky is."""
+    return np.take(face_class, face)

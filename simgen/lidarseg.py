@@ -12,6 +12,10 @@ is); the static world by the surface each face belongs to (``STATIC``).
 """
 from __future__ import annotations
 
+import numpy as np
+
+from .world import CATEGORY, World
+
 NAMES = (
     "noise", "animal", "human.pedestrian.adult", "human.pedestrian.child",
     "human.pedestrian.construction_worker", "human.pedestrian.personal_mobility",
@@ -34,3 +38,23 @@ MANMADE = INDEX["static.manmade"]            # buildings, poles, bins
 VEGETATION = INDEX["static.vegetation"]      # trees, hedges
 CAR = INDEX["vehicle.car"]                   # the occluders' parked vans (not annotated)
 STATIC = (ROAD, SIDEWALK, TERRAIN, PLAZA, MANMADE, VEGETATION, CAR)
+
+
+def class_of_id(world: World) -> np.ndarray:
+    """(1 + largest actor id,) uint8: each actor id's class (by the actor's category); index 0,
+    the static world's id, holds 0 and is never read by :func:`classes`."""
+    table = np.zeros(1 + max((a.id for a in world.actors), default=0), np.uint8)
+    for a in world.actors:
+        table[a.id] = INDEX[CATEGORY[a.cls]]
+    return table
+
+
+def classes(ids: np.ndarray, static_class: np.ndarray, id_class: np.ndarray) -> np.ndarray:
+    """The class of each hit: its actor's class where it hit an actor (``ids`` > 0), else the
+    class of the static surface it hit (``static_class``, same shape). The lidar's points and the
+    cameras' pixels are labelled by this one function, so the two agree on every surface.
+
+    ids : (...) int actor ids, 0 = static world.  id_class : :func:`class_of_id`.
+    Returns (...) uint8.
+    """
+    return np.where(ids > 0, np.take(id_class, ids), static_class).astype(np.uint8)

@@ -156,6 +156,7 @@ class Sensors:
     rng_sensor: np.random.Generator
     dropped_rings: np.ndarray      # (k,) int, the rings a beam-drop lidar loses
     rng_degrade: np.random.Generator
+    face_class: np.ndarray | None  # (F,) uint8 lidarseg class per rendered face; None without dense labels
 
 
 @dataclass(frozen=True)
@@ -195,7 +196,8 @@ def _scene_records(s: MakeSettings, idx: int, threads: int) -> writer.SceneRecor
     # Degradation draws from its own stream, so the clean sensor data (and the labels counted
     # on them) are the same bytes with or without it: paired datasets.
     dropped_rings, rng_degrade = degradation_stream(s, idx)
-    sensors = Sensors(renderer, scanner, rng_sensor, dropped_rings, rng_degrade)
+    face_class = labels.face_classes(world, renderer.face_owner) if s.dense_labels else None
+    sensors = Sensors(renderer, scanner, rng_sensor, dropped_rings, rng_degrade, face_class)
 
     records = writer.SceneRecords(idx)
     scene = _add_scene_rows(s, idx, world, records)
@@ -312,9 +314,9 @@ def _add_key_frame(scene: SceneContext, sensors: Sensors, records: writer.SceneR
 
 def _add_cameras(scene: SceneContext, sensors: Sensors, records: writer.SceneRecords, key_frame: LidarKeyFrame,
                  near: list[int]) -> tuple[list, list[np.ndarray], list[np.ndarray]]:
-    """Render the six cameras of a key frame, each at the time the sweep crosses its axis.
-    Returns per camera its actor-id image, T_global_from_cam (4, 4) and the (m, 4, 4) poses of
-    the ``near`` actors at its time."""
+    """Render the six cameras of a key frame, each at the time the sweep crosses its axis, with
+    their dense labels when asked for. Returns per camera its actor-id image, T_global_from_cam
+    (4, 4) and the (m, 4, 4) poses of the ``near`` actors at its time."""
     cfg, world = scene.cfg, scene.world
     width, height = cfg.camera.resolution
     id_images, cam_poses, actor_poses = [], [], []
@@ -324,8 +326,8 @@ def _add_cameras(scene: SceneContext, sensors: Sensors, records: writer.SceneRec
         b = world.boxes_at(t_cam)
         poses = geometry.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])     # (n, 4, 4) T_global_from_box
         pose_of = {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate}
-        rgb, depth, ids = sensors.renderer.render(cam, T_global_from_cam, pose_of, with_depth=cfg.degrade.alpha > 0,
-                                                  lazy_ids=True)
+        with_depth = cfg.degrade.alpha > 0 or scene.s.dense_labels
+        rgb, depth, ids = sensors.renderer.render(cam, T_global_from_cam, pose_of, with_depth=with_depth, lazy_ids=True)
         if cfg.camera.renderer == "mitsuba":
             # Path-traced rgb; the labels keep the rasterised id pass, so they do not depend on
             # the renderer (the two agree geometrically: tests/simgen/test_mitsuba.py).
@@ -337,10 +339,22 @@ def _add_cameras(scene: SceneContext, sensors: Sensors, records: writer.SceneRec
         jpeg = writer.encode_jpeg(rgb, cfg.camera.jpeg_quality)
         _add_sensor_file(scene, records, SensorFile(cam.channel, sd_tok, t_cam, key_frame.k_sample, True, filename,
                                                     jpeg, width, height))
+        if sensors.face_class is not None:
+            _add_dense_labels(records, filename, depth, ids, sensors.face_class)
         id_images.append(ids)
         cam_poses.append(T_global_from_cam)
         actor_poses.append(poses[near])
     return id_images, cam_poses, actor_poses
+
+
+def _add_dense_labels(records: writer.SceneRecords, image_file: str, depth: np.ndarray, ids,
+                      face_class: np.ndarray) -> None:
+    """The dense labels of one camera image, from its clean render (a degraded image keeps the
+    labels of the scene it shows): depth (H, W) float32 camera z and ``ids``, its
+    :class:`~simgen.camera.IdImage`."""
+    depth_file, seg_file = writer.dense_label_files(image_file)
+    records.files[depth_file] = writer.encode_png(labels.depth_image(depth), writer.DENSE_PNG_LEVEL)
+    records.files[seg_file] = writer.encode_png(labels.seg_image(ids.face, face_class), writer.DENSE_PNG_LEVEL)
 
 
 def _link_rows(scene: SceneContext, records: writer.SceneRecords) -> None:

@@ -20,12 +20,19 @@ class MakeSettings:
     version: str
     val_fraction: float = 0.2
     gl: str | None = None
+    dense_labels: bool = False     # a depth and a class image beside each camera image
 
     def fingerprint(self) -> dict:
+        """The settings a resumed run must share with the parts already written. Dense labels
+        enter it only when on, so a set made without them keeps the fingerprint (and the
+        settings file) that it had before the option existed."""
         d = dataclasses.asdict(self.cfg)
         d.pop("source")
-        return {"cfg": d, "seed": self.seed, "samples_per_scene": self.samples_per_scene,
-                "version": self.version, "val_fraction": self.val_fraction}
+        fp = {"cfg": d, "seed": self.seed, "samples_per_scene": self.samples_per_scene,
+              "version": self.version, "val_fraction": self.val_fraction}
+        if self.dense_labels:
+            fp["dense_labels"] = True
+        return fp
 
 
 def scene_rng(seed: int, idx: int, stream: int) -> np.random.Generator:
