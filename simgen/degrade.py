@@ -14,7 +14,11 @@ same thing to each. Severity 1-5 uses the lidar alphas of the common-corruption 
   out (no code of theirs is used). Strongest return: the sensor reports the higher of the hard
   echo ``rho cos exp(-2 alpha R0) / R0^2`` and the fog's peak, when it reaches the clear-weather
   threshold ``min_return``; so fog replaces a hard return only where it is stronger. The fog's
-  peak power and range, as functions of R0, are a table built once per alpha (:func:`fog_table`).
+  echo is weighted by the overlap of the transmitter's beam and the receiver's field of view,
+  derived from the sensor's biaxial geometry (:class:`Optics`, :func:`overlap`). The fog's peak
+  power and range, as functions of R0, are a table built once per alpha (:func:`fog_table`); the
+  receiver locates that broad, weak peak with noise that grows as its curvature and power fall
+  (:func:`fog_range_sigma`), so fog returns form a cloud in front of the sensor.
   Intensities use lidar.py's scale: ``intensity = 255 * clip(p * ref_range^2, 0, 1)``.
 
 The derivation with units, the parameters and how the results move with them: docs/fog.md.
@@ -22,6 +26,9 @@ The derivation with units, the parameters and how the results move with them: do
 References: R. H. Rasshofer, M. Spies, H. Spies, "Influences of weather phenomena on automotive
 laser radar systems", Adv. Radio Sci. 9, 2011. M. Hahner, C. Sakaridis, D. Dai, L. Van Gool,
 "Fog Simulation on Real LiDAR Point Clouds for 3D Object Detection in Adverse Weather", ICCV 2021.
+T. Halldorsson, J. Langerholc, "Geometrical form factors for the lidar function", Appl. Opt. 17,
+1978. K. Stelmaszczyk et al., "Analytical function for lidar geometrical compression form-factor
+calculations", Appl. Opt. 44, 2005. Velodyne, HDL-32E User's Manual.
 """
 from __future__ import annotations
 
@@ -35,9 +42,11 @@ import numpy as np
 FOG_ALPHA = (0.0, 0.005, 0.01, 0.02, 0.03, 0.06)   # severity 0..5 (1/m)
 C_LIGHT = 299_792_458.0
 TAU_H = 20e-9             # half-power pulse width (s), Hahner's default
-XI_R1, XI_R2 = 0.9, 1.0   # beam crossover: no overlap before R1, full overlap after R2 (m)
 BETA_PER_INV_MOR = 0.046  # backscatter beta = 0.046 / MOR (1/m)
-FOG_RANGE_NOISE = 0.05    # m, spread of the fog return's range
+MIN_RANGE = 0.05          # m, the HDL-32E manual's nearest valid data
+RANGE_SIGMA = 0.02        # m, the HDL-32E's range accuracy (one sigma) ...
+RANGE_SIGMA_POWER = 0.1 / 25.0**2   # ... for a hard echo of this power (1/m^2): rho 0.1 at 25 m
+PEAK_SPAN = 0.25          # m, half-span of the difference that measures a fog peak's curvature
 AIRLIGHT = np.array([205.0, 208.0, 212.0])         # RGB of fog-scattered daylight
 TABLE_STEP = 0.01         # m
 TABLE_MAX = 120.0         # m
@@ -109,23 +118,68 @@ def lens_dirt(rgb: np.ndarray, severity: int, rng: np.random.Generator) -> np.nd
     return np.clip(np.round(out), 0, 255).astype(np.uint8)
 
 
+# ---------------------------------------------------------------- lidar optics
+
+class Optics(NamedTuple):
+    """One laser-detector pair of a biaxial lidar, both cones top-hat and their axes parallel:
+    ``offset`` (m) between the transmitter's and the receiver's axes, the beam's radius at the
+    exit ``tx_radius`` (m) and half-angle divergence ``tx_divergence`` (rad), the receiver's
+    aperture radius ``rx_radius`` (m) and half-angle field of view ``rx_fov`` (rad)."""
+    offset: float
+    tx_radius: float
+    tx_divergence: float
+    rx_radius: float
+    rx_fov: float
+
+    def onset(self) -> float:
+        """Range (m) at which the beam first enters the receiver's field (the overlap is 0 before)."""
+        return max((self.offset - self.tx_radius - self.rx_radius) / (self.tx_divergence + self.rx_fov), 0.0)
+
+    def full(self) -> float:
+        """Range (m) from which the receiver's field holds the whole beam (the overlap is 1 after)."""
+        return max((self.offset + self.tx_radius - self.rx_radius) / (self.rx_fov - self.tx_divergence), 0.0)
+
+
+# The HDL-32E: the divergence is its manual's laser spot (the wider side); Velodyne publishes no
+# lens offset, apertures or receiver field of view, so those are a design that fits its head
+# (docs/fog.md: the sources, and how the fog moves with each constant).
+HDL32E = Optics(offset=0.030, tx_radius=0.005, tx_divergence=1.67e-3, rx_radius=0.0125, rx_fov=4.0e-3)
+
+
+def overlap(r: np.ndarray, optics: Optics = HDL32E) -> np.ndarray:
+    """The overlap ("crossover") xi(r) (same shape as ``r``, m): the share of the beam's cross-section
+    at range r inside the receiver's field, i.e. the intersection of two discs of radii
+    ``a = tx_radius + tx_divergence r`` (beam) and ``b = rx_radius + rx_fov r`` (field), centres
+    ``offset`` apart, over the beam's area. 0 up to ``optics.onset()``, 1 from ``optics.full()``."""
+    r = np.asarray(r, np.float64)
+    a = optics.tx_radius + optics.tx_divergence * r
+    b = optics.rx_radius + optics.rx_fov * r
+    d = optics.offset
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos_a = np.clip((d * d + a * a - b * b) / (2 * d * a), -1.0, 1.0)
+        cos_b = np.clip((d * d + b * b - a * a) / (2 * d * b), -1.0, 1.0)
+        kite = np.sqrt(np.maximum((a + b - d) * (d + a - b) * (d - a + b) * (d + a + b), 0.0))
+        lens = a * a * np.arccos(cos_a) + b * b * np.arccos(cos_b) - 0.5 * kite
+    share = np.clip(lens / (np.pi * a * a), 0.0, 1.0)
+    # Exact where one disc holds the other, so that the overlap is exactly 1 from full overlap on.
+    share = np.where(d <= a - b, (b / a) ** 2, share)
+    return np.where(d >= a + b, 0.0, np.where(d <= b - a, 1.0, share))
+
+
 # ---------------------------------------------------------------- lidar fog
 
 class FogReturns(NamedTuple):
     """What fog makes of each clean return (all (n,)): its attenuated hard power ``p_hard`` and the
-    fog's strongest power ``p_soft`` (1/m^2, lidar.py's units), the range at which a fog return
-    is reported (m), whether the fog wins (``p_soft > p_hard``) and whether the ray reports a
-    return at all (``max(p_hard, p_soft) >= min_return``)."""
+    fog's strongest power ``p_soft`` (1/m^2, lidar.py's units), the range of the fog's peak as the
+    sensor reports it (m, without noise) and one sigma (m) of where the receiver locates it
+    (``range_sigma``, 0 where the hard echo wins), whether the fog wins (``p_soft > p_hard``) and
+    whether the ray reports a return at all (``max(p_hard, p_soft) >= min_return``)."""
     p_hard: np.ndarray
     p_soft: np.ndarray
     fog_range: np.ndarray
+    range_sigma: np.ndarray
     fog_wins: np.ndarray
     kept: np.ndarray
-
-
-def crossover(r: np.ndarray) -> np.ndarray:
-    """The beam crossover xi(r): 0 before XI_R1, 1 after XI_R2, linear between."""
-    return np.clip((r - XI_R1) / (XI_R2 - XI_R1), 0.0, 1.0)
 
 
 def _fog_cells(alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -137,11 +191,19 @@ def _fog_cells(alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     r = np.arange(0.0, TABLE_MAX, dr)
     beta = BETA_PER_INV_MOR / visibility_of(alpha)
     rm = r + dr / 2
-    h = np.pi * beta * crossover(rm) / rm**2 * np.exp(-2 * alpha * rm)
+    h = np.pi * beta * overlap(rm) / rm**2 * np.exp(-2 * alpha * rm)
     width = C_LIGHT * TAU_H                                   # range extent of the pulse (m)
     lag = np.arange(int(np.ceil(width / dr)) + 1)
     pulse = np.where(lag > 0, np.sin(np.pi * np.clip((lag - 0.5) * dr / width, 0.0, 1.0)) ** 2, 0.0)
     return r, h, pulse
+
+
+@functools.lru_cache(maxsize=16)
+def _fog_echo(alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(r, h, pulse) of :func:`_fog_cells` and the fog's own echo ``p_soft(R)`` (n,) on the grid,
+    with no target in it: one discrete convolution of the pulse with the fog cells."""
+    r, h, pulse = _fog_cells(alpha)
+    return r, h, pulse, np.convolve(h, pulse)[: len(r)] * TABLE_STEP
 
 
 def _cut_peaks(h: np.ndarray, pulse: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -164,12 +226,11 @@ def fog_table(alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(R0 grid (n,) m, strongest fog power ``max_R p_soft(R; R0)`` (n,) 1/m^2, its reported range
     (n,) m) for extinction ``alpha``, on a uniform grid from 0 (step TABLE_STEP).
 
-    ``p_soft(R)`` without the cut at R0 is one discrete convolution of the pulse with the fog
-    cells. Up to R0 the cut changes nothing, so the running maximum of the uncut echo is a lower
-    bound; past the fog's own peak nothing can exceed that peak, so it is the answer. For R0 short
-    of the peak the waveform past R0 (fog in front of the target only) is checked exactly."""
-    r, h, pulse = _fog_cells(alpha)
-    full = np.convolve(h, pulse)[: len(r)] * TABLE_STEP       # uncut p_soft(R), R on the grid
+    Up to R0 the cut at the target changes nothing, so the running maximum of the fog's own echo
+    is a lower bound; past the fog's own peak nothing can exceed that peak, so it is the answer.
+    For R0 short of the peak the waveform past R0 (fog in front of the target only) is checked
+    exactly."""
+    r, h, pulse, full = _fog_echo(alpha)
     arg = np.maximum.accumulate(np.where(full >= np.maximum.accumulate(full), np.arange(len(r)), 0))
     best = full[arg]
     k = int(np.argmax(full)) + 1
@@ -181,6 +242,27 @@ def fog_table(alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return r, best, np.maximum(r[np.minimum(arg, len(r) - 1)] - C_LIGHT * TAU_H / 2, 0.0)
 
 
+@functools.lru_cache(maxsize=16)
+def fog_peak_curvature(alpha: float) -> float:
+    """``-p_soft''(R) / p_soft(R)`` (1/m^2) at the peak of the fog's own echo: how sharply it peaks
+    (a sin^2 pulse of range width W gives 2 pi^2 / W^2). Central difference over +-PEAK_SPAN."""
+    r, _, _, full = _fog_echo(alpha)
+    i, k = int(np.argmax(full)), int(round(PEAK_SPAN / TABLE_STEP))
+    return float((2 * full[i] - full[i + k] - full[max(i - k, 0)]) / (k * TABLE_STEP) ** 2 / full[i])
+
+
+def fog_range_sigma(p_soft: np.ndarray, alpha: float) -> np.ndarray:
+    """One sigma (m) of the range at which the receiver locates a fog peak of power ``p_soft`` (n,).
+
+    A peak is located where the waveform's slope crosses zero; noise of slope sigma_s moves it by
+    ``sigma_s / |P''|``. The same receiver locates a hard echo of power RANGE_SIGMA_POWER (curvature
+    ``2 pi^2 / W^2`` times its power) to RANGE_SIGMA, which fixes sigma_s; the fog's broad, weak
+    peak has far less curvature, so it is located far less precisely."""
+    hard = 2 * np.pi**2 / (C_LIGHT * TAU_H) ** 2 * RANGE_SIGMA_POWER
+    soft = fog_peak_curvature(alpha) * np.asarray(p_soft, np.float64)
+    return np.divide(RANGE_SIGMA * hard, soft, out=np.zeros_like(soft), where=soft > 0)
+
+
 def fog_returns(rho_cos: np.ndarray, range_m: np.ndarray, alpha: float, min_return: float) -> FogReturns:
     """The strongest-return bookkeeping of fog ``alpha`` for clean returns of reflectivity times
     cos(incidence) ``rho_cos`` (n,) at measured range ``range_m`` (n,) m; ``min_return`` is the
@@ -190,7 +272,8 @@ def fog_returns(rho_cos: np.ndarray, range_m: np.ndarray, alpha: float, min_retu
     idx = np.minimum(np.rint(range_m / TABLE_STEP).astype(np.int64), len(r) - 1)   # uniform grid from 0
     p_soft = best[idx]
     fog_wins = p_soft > p_hard
-    return FogReturns(p_hard, p_soft, fog_r[idx], fog_wins, np.maximum(p_hard, p_soft) >= min_return)
+    sigma = np.where(fog_wins, fog_range_sigma(p_soft, alpha), 0.0)
+    return FogReturns(p_hard, p_soft, fog_r[idx], sigma, fog_wins, np.maximum(p_hard, p_soft) >= min_return)
 
 
 def fog_lidar(points: np.ndarray, rho_cos: np.ndarray, range_m: np.ndarray, dir_lidar: np.ndarray, alpha: float,
@@ -203,15 +286,17 @@ def fog_lidar(points: np.ndarray, rho_cos: np.ndarray, range_m: np.ndarray, dir_
     clear-weather detection threshold on ``p`` (1/m^2); ref_range : intensity scale (lidar.py).
 
     Returns (points (k, same columns), is_fog (k,) bool): the rows whose ray still reports a
-    return, in order; hard ones attenuated in place, fog-won ones moved along their ray to the
-    fog range with the fog intensity (:func:`fog_returns` says which).
+    return, in order; hard ones attenuated in place, fog-won ones moved along their ray to where
+    the receiver locates the fog's peak (its range plus the receiver's noise, kept between
+    MIN_RANGE and the target) with the fog intensity (:func:`fog_returns` says which).
     """
     if alpha <= 0 or len(points) == 0:
         return points.copy(), np.zeros(len(points), bool)
     f = fog_returns(rho_cos, range_m, alpha, min_return)
     power = np.where(f.fog_wins, f.p_soft, f.p_hard)
-    noise = FOG_RANGE_NOISE * rng.standard_normal(len(points))    # drawn for all: a fixed stream
-    new_range = np.where(f.fog_wins, np.maximum(f.fog_range + noise, 0.0), range_m)
+    noise = rng.standard_normal(len(points))                    # drawn for all: a fixed stream
+    located = np.clip(f.fog_range + f.range_sigma * noise, MIN_RANGE, range_m)
+    new_range = np.where(f.fog_wins, located, range_m)
     out = points.copy()
     out[:, :3] = points[:, :3] - dir_lidar * (range_m - new_range)[:, None]
     out[:, 3] = np.round(255.0 * np.clip(power * ref_range**2, 0.0, 1.0))

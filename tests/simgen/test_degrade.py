@@ -69,7 +69,10 @@ def test_lidar_fog_moves_weak_far_returns_to_the_fog_range_along_the_ray():
     out, is_fog = degrade.fog_lidar(pts, rho_cos, ranges, dirs, degrade.FOG_ALPHA[5], 5e-6, 6.0, np.random.default_rng(0))
     assert is_fog.all()
     r = np.linalg.norm(out[:, :3], axis=1)
-    assert ((r > 1.0) & (r < 3.0)).all()                                # near the sensor
+    _, _, fog_r = degrade.fog_table(degrade.FOG_ALPHA[5])
+    sigma = degrade.fog_returns(rho_cos, ranges, degrade.FOG_ALPHA[5], 5e-6).range_sigma
+    k = np.rint(ranges / degrade.TABLE_STEP).astype(int)
+    assert (np.abs(r - fog_r[k]) < 5 * sigma + 1e-4).all() and (r < 10.0).all()   # near the sensor
     np.testing.assert_allclose(out[:, :3] / r[:, None], dirs, atol=1e-6)  # on the same ray
     # A return lost to attenuation when the fog response is below the threshold too.
     out2, _ = degrade.fog_lidar(pts, rho_cos, ranges, dirs, degrade.FOG_ALPHA[5], 1.0, 6.0, np.random.default_rng(0))
@@ -89,6 +92,39 @@ def test_lidar_fog_keeps_the_clear_weather_threshold():
         assert len(out) == (3 if kept else 0) and not is_fog.any()
 
 
+def _overlap_by_chords(r, optics=degrade.HDL32E, n=2001):
+    """The overlap at ranges r (m,) by integrating, across the beam's disc (radius a, centre 0),
+    the length of each chord that also lies in the field's disc (radius b, centre ``offset``),
+    over the beam's area: a quadrature independent of degrade.overlap's closed form."""
+    r = np.asarray(r, float)[:, None]
+    a = optics.tx_radius + optics.tx_divergence * r
+    b = optics.rx_radius + optics.rx_fov * r
+    y = a * np.linspace(-1.0, 1.0, n)[None, :]
+    half_a = np.sqrt(np.maximum(a * a - y * y, 0.0))
+    half_b = np.sqrt(np.maximum(b * b - y * y, 0.0))
+    inside_b = b * b > y * y
+    lo, hi = np.maximum(-half_a, optics.offset - half_b), np.minimum(half_a, optics.offset + half_b)
+    chord = np.where(inside_b, np.maximum(hi - lo, 0.0), 0.0)
+    return np.trapz(chord, y, axis=1) / np.trapz(2 * half_a, y, axis=1)
+
+
+def test_overlap_is_the_biaxial_geometry():
+    """0 before the beam enters the receiver's field, 1 once the field holds the whole beam,
+    monotone between, and equal to the area fraction of the two discs (by chords)."""
+    o = degrade.HDL32E
+    r1, r2 = o.onset(), o.full()
+    assert 1.0 < r1 < r2 < 20.0
+    # The onset: the discs touch (a + b = offset); full overlap: the field holds the beam (b - a = offset).
+    assert o.tx_radius + o.tx_divergence * r1 + o.rx_radius + o.rx_fov * r1 == pytest.approx(o.offset)
+    assert (o.rx_radius + o.rx_fov * r2) - (o.tx_radius + o.tx_divergence * r2) == pytest.approx(o.offset)
+    r = np.linspace(0.0, 30.0, 30001)
+    xi = degrade.overlap(r)
+    assert (xi[r <= r1] == 0).all() and (xi[r >= r2] == 1).all() and (xi[(r > r1) & (r < r2)] > 0).all()
+    assert (np.diff(xi) >= 0).all()
+    probe = np.linspace(r1, r2, 25)
+    np.testing.assert_allclose(degrade.overlap(probe), _overlap_by_chords(probe), atol=2e-3)
+
+
 @pytest.mark.parametrize("alpha", [degrade.FOG_ALPHA[1], degrade.FOG_ALPHA[5]])
 def test_fog_table_is_the_soft_target_integral(alpha):
     """The table against a direct quadrature of the soft-target echo (degrade.py's derivation):
@@ -98,11 +134,12 @@ def test_fog_table_is_the_soft_target_integral(alpha):
     beta = degrade.BETA_PER_INV_MOR / degrade.visibility_of(alpha)
     r_tab, best, fog_r = degrade.fog_table(alpha)
     dr = 0.004
-    for R0 in (1.2, 2.0, 3.0, 4.0, 10.0, 60.0):
+    assert best[: int(degrade.HDL32E.onset() / degrade.TABLE_STEP)].max() == 0   # no fog echo before the onset
+    for R0 in (2.3, 3.0, 4.0, 6.0, 8.0, 10.0, 60.0):
         # The fog in front of the target (midpoints); waveform ranges up to 15 m, past which the
         # echo only falls (1/R^2 and exp(-2 alpha R), checked at the end).
         Rp = np.arange(dr / 2, min(R0, 15.0), dr)
-        h = np.pi * beta * degrade.crossover(Rp) * np.exp(-2 * alpha * Rp) / Rp**2
+        h = np.pi * beta * _overlap_by_chords(Rp) * np.exp(-2 * alpha * Rp) / Rp**2
         R = np.arange(0.0, min(R0 + width, 15.0), 0.01)[:, None]
         s = R - Rp[None, :]
         w = np.where((s >= 0) & (s <= width), np.sin(np.pi * s / width) ** 2, 0.0)
@@ -163,7 +200,7 @@ def test_lidar_fog_follows_the_lidar_equation_on_a_sweep(clean_sweep):
         for b in range(len(BANDS) - 1):
             in_b = band == b
             assert (hard & in_b).sum() == (expected & in_b).sum() - (expected & won & in_b).sum()
-        far = sweep.range > 5.0                                              # past the fog's own peak
+        far = sweep.range > 12.0                                             # past the fog's own peak
         if (won & far).any() and (hard & far).any():
             assert p_hard[won & far].max() <= p_hard[hard & far].min()       # the weakest go first
         loss.append([int((~hard & (band == b)).sum()) for b in range(len(BANDS) - 1)])
@@ -185,11 +222,109 @@ def test_lidar_fog_on_a_scene_labels_and_places_the_fog_returns(clean_sweep):
         np.testing.assert_array_equal(same, pts)
         # Fog returns are labelled noise; the hard returns keep their surface's class.
         assert (seg[is_fog] == lidarseg.NOISE).all() and (seg[~is_fog] != lidarseg.NOISE).all()
-        # They sit near the sensor: the fog's echo peaks a few metres out, read as the pulse's lead.
+        # They sit in the fog in front of their target, a few metres out: the fog's echo peaks
+        # once the beam is in the receiver's field, read as the pulse's lead.
         ray, _, _ = _fog_by_ray(sweep, cfg, degrade.FOG_ALPHA[sev])
         r_fog = np.linalg.norm(pts[is_fog, :3] - (sweep.points_lidar[ray[is_fog], :3]
                                                   - sweep.dir_lidar[ray[is_fog]] * sweep.range[ray[is_fog], None]), axis=1)
-        assert is_fog.any() and (r_fog > 1.0).all() and (r_fog < 2.5).all()
+        assert is_fog.any() and (r_fog >= degrade.MIN_RANGE - 1e-4).all()
+        assert (r_fog <= sweep.range[ray[is_fog]] + 1e-4).all() and np.median(r_fog) < degrade.HDL32E.full()
+
+
+def _soft_echo_by_quadrature(alpha, r0_grid, dr=0.005, span=15.0):
+    """The fog's strongest echo in front of a target at each R0 of ``r0_grid``, by the test's own
+    quadrature of the lidar equation: max over the waveform range R of
+    pi beta int_{R' < R0} sin^2(pi (R - R') / W) xi(R') exp(-2 alpha R') / R'^2 dR' (W = c tau_H),
+    xi by chords. Past ``span`` (beyond the fog's own peak) the value at ``span`` holds."""
+    width = degrade.C_LIGHT * degrade.TAU_H
+    beta = degrade.BETA_PER_INV_MOR / degrade.visibility_of(alpha)
+    Rp = np.arange(dr / 2, span, dr)
+    h = np.pi * beta * _overlap_by_chords(Rp) * np.exp(-2 * alpha * Rp) / Rp**2
+    lag = np.arange(int(np.ceil(width / dr)) + 1)
+    pulse = np.where(lag > 0, np.sin(np.pi * np.clip((lag - 0.5) * dr / width, 0.0, 1.0)) ** 2, 0.0)
+    return np.array([(np.convolve(h * (Rp < min(R0, span)), pulse) * dr).max() for R0 in r0_grid])
+
+
+def test_each_ray_reports_the_stronger_echo_by_the_lidar_equation(clean_sweep):
+    """Per ray, against an independent computation of both echoes: the hard echo
+    rho cos exp(-2 alpha R0) / R0^2 and the fog's (quadrature above, the overlap by chords). The
+    ray reports the stronger, with its power as intensity, when it reaches min_return; rays within
+    1% of a tie are left out (at most 2% of them)."""
+    cfg, sweep = clean_sweep
+    rho_cos, R0, thr, ref = sweep.rho * sweep.cos_inc, sweep.range, cfg.lidar.min_return, cfg.lidar.intensity_ref_range
+    step = 0.05
+    grid = np.arange(0.0, 15.0 + step, step)
+    for alpha in degrade.FOG_ALPHA[1:]:
+        soft_grid = _soft_echo_by_quadrature(alpha, grid)
+        k = np.minimum((R0 / step).astype(int), len(grid) - 2)
+        lo, hi = soft_grid[k], soft_grid[k + 1]                  # the echo only grows with R0
+        p_hard = rho_cos / R0**2 * np.exp(-2 * alpha * R0)
+        fog = p_hard < 0.99 * lo
+        hard = p_hard > 1.01 * hi
+        stronger = np.where(fog, lo, p_hard)
+        sure = (fog | hard) & (np.abs(stronger - thr) > 0.01 * thr)
+        assert sure.mean() > 0.98, sure.mean()
+        ray, is_fog, out = _fog_by_ray(sweep, cfg, alpha)
+        delivered = np.zeros(len(R0), bool)
+        delivered[ray] = True
+        won = np.zeros(len(R0), bool)
+        won[ray[is_fog]] = True
+        np.testing.assert_array_equal(delivered[sure], (stronger >= thr)[sure])
+        np.testing.assert_array_equal(won[sure & delivered], fog[sure & delivered])
+        row = np.full(len(R0), -1)
+        row[ray] = np.arange(len(ray))
+        got = out[row[sure & delivered], 3]
+        want = 255 * np.clip(np.where(fog, (lo + hi) / 2, p_hard) * ref**2, 0, 1)[sure & delivered]
+        assert (np.abs(got - want) <= 0.5 + 0.01 * want).all()
+
+
+def test_haze_makes_no_fog_returns(clean_sweep):
+    """At a visibility of 2 km and more the fog's strongest echo stays below the clear-weather
+    threshold: no fog return, and every hard return the lidar equation keeps is delivered."""
+    cfg, sweep = clean_sweep
+    for mor in (2000.0, 5000.0):
+        alpha = degrade.alpha_of_visibility(mor)
+        assert degrade.fog_table(alpha)[1].max() < cfg.lidar.min_return
+        ray, is_fog, _ = _fog_by_ray(sweep, cfg, alpha)
+        p_hard = sweep.rho * sweep.cos_inc / sweep.range**2 * np.exp(-2 * alpha * sweep.range)
+        assert not is_fog.any() and np.array_equal(ray, np.nonzero(p_hard >= cfg.lidar.min_return)[0])
+
+
+def _located_range(sweep, ray, out):
+    """Distance (k,) from each delivered row's ray origin to its point."""
+    origin = sweep.points_lidar[ray, :3] - sweep.dir_lidar[ray] * sweep.range[ray, None]
+    return np.linalg.norm(out[:, :3] - origin, axis=1)
+
+
+def test_fog_returns_are_a_cloud_located_with_the_receivers_noise(clean_sweep):
+    """Each fog return lies at the fog's peak plus the receiver's noise of one sigma
+    ``range_sigma`` (standardised: mean 0, sigma 1), far wider than a hard echo's 2 cm and wider
+    for a weaker fog (the peak of a weaker echo is located less precisely)."""
+    cfg, sweep = clean_sweep
+    medians = []
+    for alpha in degrade.FOG_ALPHA[1:]:
+        ray, is_fog, out = _fog_by_ray(sweep, cfg, alpha)
+        f = degrade.fog_returns(sweep.rho * sweep.cos_inc, sweep.range, alpha, cfg.lidar.min_return)
+        r = ray[is_fog]
+        located = _located_range(sweep, r, out[is_fog])
+        free = (located > degrade.MIN_RANGE + 1e-3) & (located < sweep.range[r] - 1e-3)   # not clipped
+        z = (located - f.fog_range[r])[free] / f.range_sigma[r][free]
+        assert free.mean() > 0.95 and abs(z.mean()) < 0.15 and abs(z.std() - 1.0) < 0.15, (alpha, z.mean(), z.std())
+        medians.append(float(np.median(f.range_sigma[r])))
+    assert min(medians) > 2.5 * degrade.RANGE_SIGMA and all(b < a for a, b in zip(medians, medians[1:])), medians
+
+
+def test_lidar_fog_is_a_function_of_its_seed(clean_sweep):
+    """Same seed, same bytes; another seed moves only the fog returns, along their rays."""
+    cfg, sweep = clean_sweep
+    a = _fog_by_ray(sweep, cfg, degrade.FOG_ALPHA[3])
+    b = _fog_by_ray(sweep, cfg, degrade.FOG_ALPHA[3])
+    assert a[2].tobytes() == b[2].tobytes() and (a[0] == b[0]).all()
+    pts = np.concatenate([sweep.points_lidar, np.arange(len(sweep.range), dtype=np.float32)[:, None]], axis=1)
+    c, is_fog = degrade.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, degrade.FOG_ALPHA[3],
+                                  cfg.lidar.min_return, cfg.lidar.intensity_ref_range, np.random.default_rng(2))
+    np.testing.assert_array_equal(c[~is_fog], a[2][~a[1]])
+    assert (c[is_fog, 3:] == a[2][a[1], 3:]).all() and (c[is_fog, :3] != a[2][a[1], :3]).any(axis=1).mean() > 0.99
 
 
 def test_one_alpha_drives_camera_and_lidar():
