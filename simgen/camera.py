@@ -5,7 +5,9 @@ other module uses the nuScenes camera frame (x right, y down, z forward); the co
 ``T_gl_from_cv`` below.
 
 Shading is Lambertian (ambient plus a sun), evaluated per face on the CPU; the GPU pass is
-pyrender's unlit FLAT pass drawing face indices (see :class:`Renderer`). On a software
+pyrender's unlit FLAT pass drawing face indices (see :class:`Renderer`). With ``shadows`` on, a
+second, depth-only pass from the sun gives a shadow map, and pixels whose surface the sun cannot
+see keep only their face's ambient colour (simgen/sun.py); ids and depth are not affected. On a software
 rasteriser (llvmpipe) this is several times faster than pyrender's PBR shader and its separate
 segmentation pass, and shows shape just as well.
 Actors whose bounding sphere is outside a camera's view are not drawn.
@@ -24,7 +26,7 @@ import types
 import cv2
 import numpy as np
 
-from . import geometry
+from . import geometry, sun as sunlight
 from .config import CameraConfig
 from .rig import Camera
 from .world import World
@@ -34,6 +36,8 @@ T_CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 SKY = (0.62, 0.74, 0.88)
 GL_PLATFORMS = ("egl", "osmesa")
 STATIC_TILE = 40.0   # metres: the side of the static world's culled tiles
+CAMERA_ZNEAR = 0.1   # metres
+CASTER_MIN_HEIGHT = 0.2   # metres: static faces wholly below this cast no shadow worth drawing
 
 
 def _single_sample_framebuffers(renderer_module) -> None:
@@ -76,6 +80,24 @@ def _read_single_sample_framebuffer(renderer, scene, flags, with_depth: bool = T
     depth = (2.0 * n * f) / (f + n - (2.0 * ndc - 1.0) * (f - n))      # float32, as pyrender computes it
     depth[ndc == 1.0] = 0.0
     return rgba, depth
+
+
+def _read_window_depth(renderer, scene, flags):
+    """Stands in for ``Renderer._read_main_framebuffer`` (EGL) in the shadow pass: the depth
+    buffer as it is, (H, W) float32 window depth in [0, 1] (1 = nothing), top row first. The
+    shadow camera is orthographic, so window depth is already linear in distance."""
+    from OpenGL.GL import GL_DEPTH_COMPONENT, GL_FLOAT, GL_READ_FRAMEBUFFER, glBindFramebuffer, glReadPixels
+    w, h = renderer._main_fb_dims
+    glBindFramebuffer(GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
+    return np.frombuffer(glReadPixels(0, 0, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w)[::-1]
+
+
+def _window_from_linear_depth(depth: np.ndarray, znear: float, zfar: float) -> np.ndarray:
+    """Undo pyrender's own reader (OSMesa), which linearises every depth buffer as a perspective
+    one: (H, W) float32 its output -> window depth in [0, 1] (0 read back as 1 = nothing)."""
+    d = depth.astype(np.float64)
+    ndc = (zfar + znear - 2.0 * znear * zfar / np.where(d > 0, d, np.inf)) / (zfar - znear)
+    return np.where(d > 0, (ndc + 1.0) / 2.0, 1.0).astype(np.float32)
 
 
 def select_platform(platform: str | None) -> str:
@@ -130,6 +152,7 @@ class Renderer:
         if self._gl._platform.supports_framebuffers():      # EGL; OSMesa reads its own window buffer
             self._readers = {d: types.MethodType(functools.partial(_read_single_sample_framebuffer, with_depth=d),
                                                  gl_renderer) for d in (False, True)}
+            self._readers["window"] = types.MethodType(_read_window_depth, gl_renderer)
         self.scene = None
         self._world_key = None
 
@@ -143,16 +166,17 @@ class Renderer:
         if key == self._world_key:
             return
         pr = self._pr
-        sun_az = float(world.meta.get("sun_azimuth", 0.8))
-        sun_el = float(world.meta.get("sun_elevation", 0.9))
-        sun = np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])
+        sun = self.sun = sunlight.sun_direction(world.meta)
         scene = pr.Scene(ambient_light=np.zeros(3), bg_color=(0.0, 0.0, 0.0, 1.0))   # black = index 0 = sky
         colours, owners = [np.array([[int(255 * c) for c in SKY]], np.uint8)], [np.zeros(1, np.int32)]
+        ambient, cos_sun = [colours[0]], [np.zeros(1)]      # the sky is never shadowed
         n_faces = 1
 
         def add(triangles, normals, albedo, sun_local, owner):
             nonlocal n_faces
             colours.append(self._shaded(normals, albedo, sun_local))
+            ambient.append(self._shaded(normals, albedo, np.zeros(3)))
+            cos_sun.append(normals @ sun_local)
             owners.append(np.broadcast_to(np.asarray(owner, np.int32), (len(triangles),)))
             node = scene.add(coded_mesh(pr, triangles, n_faces))
             n_faces += len(triangles)
@@ -173,14 +197,15 @@ class Renderer:
                 albedo.append(np.asarray(a.mesh.visual.face_colors)[:, :3])
                 owner.append(np.full(len(a.mesh.faces), a.id, np.int32))
         tris, norms, albedo, owner = (np.concatenate(x) for x in (tris, norms, albedo, owner))
-        self.static_nodes, centre, radius = [], [], []
-        for f in static_tiles(tris, STATIC_TILE):
-            tile = tris[f]
-            self.static_nodes.append(add(tile, norms[f], albedo[f], sun, owner[f]))
-            lo, hi = tile.reshape(-1, 3).min(axis=0), tile.reshape(-1, 3).max(axis=0)
-            centre.append((lo + hi) / 2)
-            radius.append(float(np.linalg.norm(hi - lo)) / 2)
-        self.static_centre, self.static_radius = np.array(centre).reshape(-1, 3), np.array(radius)
+        tiles = static_tiles(tris, STATIC_TILE)
+        self.static_nodes = [add(tris[f], norms[f], albedo[f], sun, owner[f]) for f in tiles]
+        self.static_centre, self.static_radius = _bounding_spheres([tris[f] for f in tiles])
+        # The shadow pass draws only what can cast a shadow: the ground, the road and the kerbs
+        # shade nothing that stands on them, and leaving them out halves its work.
+        casters = tris[tris[:, :, 2].max(axis=1) > CASTER_MIN_HEIGHT]
+        caster_tiles = [casters[f] for f in static_tiles(casters, STATIC_TILE)]
+        self.caster_nodes = [scene.add(depth_mesh(pr, t)) for t in caster_tiles]
+        self.caster_centre, self.caster_radius = _bounding_spheres(caster_tiles)
         self.actor_nodes, self.radius = {}, {}
         for i, (a, yaw) in enumerate(zip(world.actors, world.yaw)):
             # The ego is not rendered (no pixels of the own car); static actors are merged above.
@@ -192,10 +217,10 @@ class Renderer:
                 self.radius[a.id] = float(np.linalg.norm(a.size)) / 2
         if n_faces >= 2 ** 24:
             raise ValueError(f"{n_faces} faces do not fit the 24-bit face index of the id pass")
-        rgb = np.concatenate(colours)
-        self.face_rgbx = np.concatenate([rgb, np.zeros((len(rgb), 1), np.uint8)], 1).view(np.uint32)[:, 0]
+        self.face_rgbx, self.face_ambient_rgbx = _rgbx(np.concatenate(colours)), _rgbx(np.concatenate(ambient))
+        self.face_tan = sunlight.slope_tan(np.concatenate(cos_sun))
         self.face_owner = np.concatenate(owners)
-        self.cam_node = scene.add(pr.IntrinsicsCamera(1, 1, 0, 0, znear=0.1, zfar=self.cfg.zfar))
+        self.cam_node = scene.add(pr.IntrinsicsCamera(1, 1, 0, 0, znear=CAMERA_ZNEAR, zfar=self.cfg.zfar))
         self.scene = scene
         self._world_key = key
 
@@ -213,7 +238,7 @@ class Renderer:
         cam : the camera (intrinsics for this renderer's resolution).
         T_global_from_cam : (4, 4) camera pose, nuScenes camera frame.
         actor_poses : actor id -> (4, 4) T_global_from_box at this camera's time.
-        with_depth : read the depth buffer back too (only fog needs it).
+        with_depth : return the depth image too (only fog needs it; shadows read it anyway).
         lazy_ids : return the ids as an :class:`IdImage` (looked up where read) instead of an array.
 
         Returns
@@ -224,7 +249,8 @@ class Renderer:
         """
         pr = self._pr
         K = cam.K
-        self.cam_node.camera = pr.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], znear=0.1, zfar=self.cfg.zfar)
+        self.cam_node.camera = pr.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], znear=CAMERA_ZNEAR,
+                                                   zfar=self.cfg.zfar)
         self.scene.set_pose(self.cam_node, T_global_from_cam @ T_CV_FROM_GL)
         ids = list(self.actor_nodes)
         centres = np.array([actor_poses[i][:3, 3] for i in ids]).reshape(-1, 3)
@@ -239,16 +265,69 @@ class Renderer:
             self.scene.set_pose(node, actor_poses[aid])
             self._drawn.append(node)
         self._drawn += [self.static_nodes[i] for i in tiles]
+        shadows = self.cfg.shadows
         if self._readers is not None:
-            self._gl._renderer._read_main_framebuffer = self._readers[with_depth]
+            self._gl._renderer._read_main_framebuffer = self._readers[with_depth or shadows]
         coded, depth = self._gl.render(self.scene, flags=pr.RenderFlags.FLAT | pr.RenderFlags.RGBA)
         # RGBA bytes read as one little-endian uint32 per pixel: R | G << 8 | B << 16 | A << 24.
         face = np.ascontiguousarray(coded).view(np.uint32)[..., 0] & 0xFFFFFF
-        # One 4-byte look-up per pixel (np.take on a flat table), then drop the pad byte.
-        rgbx = np.take(self.face_rgbx, face).view(np.uint8).reshape(*face.shape, 4)
-        depth = depth.astype(np.float32, copy=False) if with_depth else None
+        depth = depth.astype(np.float32, copy=False) if with_depth or shadows else None
+        if shadows:
+            rgb = self._shadowed_rgb(cam, T_global_from_cam, actor_poses, face, depth)
+        else:
+            # One 4-byte look-up per pixel (np.take on a flat table), then drop the pad byte.
+            rgbx = np.take(self.face_rgbx, face).view(np.uint8).reshape(*face.shape, 4)
+            rgb = cv2.cvtColor(rgbx, cv2.COLOR_RGBA2RGB)
         ids = IdImage(face, self.face_owner)
-        return cv2.cvtColor(rgbx, cv2.COLOR_RGBA2RGB), depth, ids if lazy_ids else np.asarray(ids)
+        return rgb, depth if with_depth else None, ids if lazy_ids else np.asarray(ids)
+
+    def _shadowed_rgb(self, cam: Camera, T_global_from_cam: np.ndarray, actor_poses: dict[int, np.ndarray],
+                      face: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """(H, W, 3) uint8 rgb of the id pass's ``face`` (H, W) and camera ``depth`` (H, W) with
+        the sun's shadows: a shadow map over the receivers, then :func:`sunlight.shade`."""
+        K = cam.K
+        K4 = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+        R = sunlight.R_sun_from_global(self.sun, T_global_from_cam[:3, 2])
+        R_sun_from_cam, t_sun = R @ T_global_from_cam[:3, :3], R @ T_global_from_cam[:3, 3]
+        lo, hi, count = sunlight.receiver_bounds(face, depth, self.face_tan, K4, R_sun_from_cam, t_sun, 2)
+        if count == 0:
+            sun_map, view = np.ones((1, 1), np.float32), np.array([0.0, 0.0, 1.0, 1.0, 1.0, 0.5, 1.0])
+        else:
+            sun_map, sun_view = self._shadow_map(R, lo, hi, actor_poses)
+            view = sun_view.params((self.width, self.height))
+        # The camera depth buffer's step at distance z is about z^2 2^-24 / znear (twice, to be safe).
+        depth_step = 2.0 * 2.0 ** -24 / CAMERA_ZNEAR
+        return sunlight.shade(face, depth, self.face_rgbx, self.face_ambient_rgbx, self.face_tan, K4,
+                              R_sun_from_cam, t_sun, sun_map, view, depth_step)
+
+    def _shadow_map(self, R: np.ndarray, lo: np.ndarray, hi: np.ndarray, actor_poses: dict[int, np.ndarray]):
+        """Render the depth seen from the sun over the receivers' sun-frame box ``lo``..``hi`` (3,).
+
+        What may cast a shadow into the box is drawn, highest first: the moving actors and the
+        caster tiles whose bounding sphere reaches over its x-y rectangle. Returns the (H, W)
+        float32 window depth map, top row first, and its :class:`sunlight.SunView`.
+        """
+        pr = self._pr
+        ids = list(self.actor_nodes)
+        actor_centre = np.array([actor_poses[i][:3, 3] for i in ids]).reshape(-1, 3) @ R.T      # sun frame
+        actor_radius = np.array([self.radius[i] for i in ids])
+        tile_centre = self.caster_centre @ R.T
+        actors = sunlight.over_rectangle(actor_centre, actor_radius, lo, hi)
+        tiles = sunlight.over_rectangle(tile_centre, self.caster_radius, lo, hi)
+        for i in actors:
+            self.scene.set_pose(self.actor_nodes[ids[i]], actor_poses[ids[i]])
+        nodes = [self.actor_nodes[ids[i]] for i in actors] + [self.caster_nodes[i] for i in tiles]
+        tops = np.concatenate([actor_centre[actors, 2] + actor_radius[actors],
+                               tile_centre[tiles, 2] + self.caster_radius[tiles]])
+        self._drawn = [nodes[i] for i in np.argsort(-tops, kind="stable")]
+        view = sunlight.fit_view(R, lo, hi, float(tops.max(initial=-np.inf)), (self.width, self.height))
+        self.cam_node.camera = pr.OrthographicCamera(view.xmag, view.ymag, znear=view.znear, zfar=view.zfar)
+        self.scene.set_pose(self.cam_node, view.T_global_from_view)
+        if self._readers is not None:
+            self._gl._renderer._read_main_framebuffer = self._readers["window"]
+            return self._gl.render(self.scene, flags=pr.RenderFlags.DEPTH_ONLY), view
+        depth = self._gl.render(self.scene, flags=pr.RenderFlags.DEPTH_ONLY)
+        return _window_from_linear_depth(depth, view.znear, view.zfar), view
 
     def _in_view(self, cam: Camera, T_global_from_cam, centres, radius) -> np.ndarray:
         """Whether each bounding sphere may touch the view frustum (conservative)."""
@@ -271,6 +350,11 @@ class Renderer:
         return inside
 
 
+def _rgbx(rgb: np.ndarray) -> np.ndarray:
+    """(F, 3) uint8 colours -> (F,) uint32, r | g << 8 | b << 16 (little-endian bytes r, g, b, 0)."""
+    return np.concatenate([rgb, np.zeros((len(rgb), 1), np.uint8)], 1).view(np.uint32)[:, 0]
+
+
 class IdImage:
     """(H, W) int32 actor ids, looked up from the rendered face indices only where they are read.
 
@@ -289,6 +373,16 @@ class IdImage:
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         ids = np.take(self.face_owner, self.face)
         return ids if dtype is None else ids.astype(dtype)
+
+
+def _bounding_spheres(tiles: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Centre (n, 3) and radius (n,) of the bounding box's sphere of each (F, 3, 3) tile."""
+    centre, radius = [], []
+    for tile in tiles:
+        lo, hi = tile.reshape(-1, 3).min(axis=0), tile.reshape(-1, 3).max(axis=0)
+        centre.append((lo + hi) / 2)
+        radius.append(float(np.linalg.norm(hi - lo)) / 2)
+    return np.array(centre).reshape(-1, 3), np.array(radius)
 
 
 def static_tiles(triangles: np.ndarray, size: float) -> list[np.ndarray]:
@@ -317,15 +411,11 @@ def coded_mesh(pr, triangles: np.ndarray, first: int):
     return pr.Mesh(primitives=[primitive])
 
 
-def _look_along(direction: np.ndarray) -> np.ndarray:
-    """A pose whose -z axis points along ``direction`` (pyrender lights shine along -z)."""
-    z = -direction / np.linalg.norm(direction)
-    x = np.cross([0.0, 0.0, 1.0], z)
-    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0.0, 0.0])
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], 1)
-    return T
+def depth_mesh(pr, triangles: np.ndarray):
+    """A pyrender mesh of (F, 3, 3) triangles for depth-only passes (no colours, no normals)."""
+    material = pr.MetallicRoughnessMaterial(baseColorFactor=[1.0, 1.0, 1.0, 1.0])
+    return pr.Mesh(primitives=[pr.Primitive(positions=triangles.reshape(-1, 3), material=material,
+                                            mode=pr.constants.GLTF.TRIANGLES)])
 
 
 def depth_to_range(depth: np.ndarray, K: np.ndarray) -> np.ndarray:

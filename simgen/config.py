@@ -70,6 +70,8 @@ class CameraConfig:
     ambient: float = field(default=0.45, metadata=allowed(0.0, 2.0))
     sun_intensity: float = field(default=3.0, metadata=allowed(0.0, 20.0))
     zfar: float = field(default=400.0, metadata=allowed(50.0, 5000.0))
+    # Cast shadows from the sun in the pyrender cameras (simgen/sun.py); Mitsuba always has them.
+    shadows: bool = field(default=True, metadata=allowed(choices=(True, False)))
     # pyrender (rasterised, the default) or mitsuba (path-traced rgb, simgen/mitsuba_camera.py).
     renderer: str = field(default="pyrender", metadata=allowed(choices=("pyrender", "mitsuba")))
     spp: int = field(default=16, metadata=allowed(1, 4096))
@@ -220,6 +222,10 @@ def _build(cls, data: Any, where: str):
                 raise ConfigError(f"{sub}: [min, max] expected, got {value!r}")
         elif typ is dict:
             kwargs[name] = _check_mix(value, sub)
+        elif typ is bool:
+            if not isinstance(value, bool):
+                raise ConfigError(f"{sub}: expected true or false, got {value!r}")
+            kwargs[name] = value
         elif typ is str:
             if not isinstance(value, str):
                 raise ConfigError(f"{sub}: expected a string, got {value!r}")

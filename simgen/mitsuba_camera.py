@@ -38,6 +38,7 @@ import trimesh
 from . import geometry
 from .config import CameraConfig
 from .rig import Camera
+from .sun import sun_direction
 from .world import World
 
 T_MI_FROM_CV = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -156,14 +157,7 @@ class MitsubaRenderer:
         None unless ``with_ids``). The rgb pass's linear float image stays in ``self.last_linear``."""
         mi = self.mi
         shapes, owners = self._shapes(world, actor_poses)
-        sun_az = float(world.meta.get("sun_azimuth", 0.8))
-        sun_el = float(world.meta.get("sun_elevation", 0.9))
-        sun = np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])
-        emitters = {
-            "sun": {"type": "directional", "direction": (-sun).tolist(),
-                    "irradiance": {"type": "rgb", "value": [self.cfg.sun_intensity] * 3}},
-            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [self.cfg.ambient * c for c in SKY_RADIANCE]}},
-        }
+        emitters = sun_and_sky(world.meta, self.cfg)
         medium = None
         if fog_alpha > 0:
             medium = {"type": "homogeneous", "sigma_t": float(fog_alpha),
@@ -195,6 +189,17 @@ class MitsubaRenderer:
                                   **id_shapes, "sensor": self._sensor(cam, T_global_from_cam, 1, scale=3)})
         ids = np.round(np.asarray(mi.render(geo_scene, spp=1))[1::3, 1::3, 0]).astype(np.int32)
         return rgb, ids
+
+
+def sun_and_sky(meta: dict, cfg: CameraConfig) -> dict:
+    """Scene dict entries of the light: the sun of the pyrender cameras (simgen/sun.py), a
+    directional emitter shining along -sun_direction, and the sky's ambient."""
+    sun = sun_direction(meta)
+    return {
+        "sun": {"type": "directional", "direction": (-sun).tolist(),
+                "irradiance": {"type": "rgb", "value": [cfg.sun_intensity] * 3}},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [cfg.ambient * c for c in SKY_RADIANCE]}},
+    }
 
 
 def actor_poses_at(world: World, t: float) -> dict[int, np.ndarray]:

@@ -12,7 +12,7 @@ from shapely.geometry import Polygon
 from simgen import geometry
 from simgen import rig
 
-# REFERENCE.md, "nuScenes sensor rig": channel -> (translation, rotation wxyz, fx = fy, cx, cy).
+# The nuScenes v1.0-mini calibration (its calibrated_sensor table): channel -> (translation, rotation wxyz, fx = fy, cx, cy).
 RIG_TABLE = {
     "CAM_FRONT": ((1.7008, 0.0159, 1.5110), (.49980, -.50303, .49978, -.49737), 1266.42, 816.27, 491.51),
     "CAM_FRONT_RIGHT": ((1.5508, -0.4934, 1.4957), (.20603, -.20269, .68245, -.67136), 1260.85, 807.97, 495.33),
