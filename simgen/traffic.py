@@ -32,6 +32,13 @@ PAINT = np.array([(200, 200, 205), (30, 30, 35), (150, 20, 25), (20, 50, 130), (
 CLOTHES = np.array([(40, 40, 60), (150, 30, 30), (30, 90, 150), (200, 200, 190), (60, 60, 60),
                     (180, 140, 60), (20, 110, 70), (110, 60, 120), (230, 120, 40), (90, 80, 70)], float)
 N_SURFACE = 256  # surface samples per actor for the visibility measure
+# Standing pedestrians: the shares of those facing along the sidewalk (either way), towards the
+# road and towards the buildings; how close to a curb one waits to cross; the largest turn away
+# from the way faced (rad); how close people stand to talk to each other (m).
+STANDING_WAYS = np.array([0.35, 0.35, 0.2, 0.1])
+WAIT_AT_CURB = 4.0
+TURN = 0.3
+GROUP_RADIUS = 2.5
 
 
 @dataclass
@@ -172,6 +179,7 @@ def place_actors(cfg: SceneConfig, grid: Grid, static: np.ndarray, duration: flo
     _place_moving_bicycles(cfg, grid, placer, new, rng)
     _place_parked_bicycles(cfg, grid, placer, new, rng)
     _place_pedestrians(cfg, grid, placer, new, rng)
+    _face_groups(placer.plans)
     return placer.plans
 
 
@@ -299,14 +307,69 @@ def _place_pedestrians(cfg: SceneConfig, grid: Grid, placer: Placer, new: ActorM
             else:
                 s = rng.uniform(5, length - 5)
             v = 0.0 if standing else rng.uniform(*SPEED["pedestrian"])
-            yaw = rng.uniform(-np.pi, np.pi) if standing else heading
+            way = rng.random() if standing else 0.0
             if standing:
-                plan = Plan(actor, origin + s * np.array([np.cos(heading), np.sin(heading)]), yaw, 0.0, 0.0, 0.0,
-                            z_ground=CURB_HEIGHT)
+                # Placed with a footprint turned by 2 pi way, as it always was, so that the draws
+                # that follow and every other actor stay where they were; then turned to face.
+                plan = Plan(actor, origin + s * np.array([np.cos(heading), np.sin(heading)]),
+                            2 * np.pi * way - np.pi, 0.0, 0.0, 0.0, z_ground=CURB_HEIGHT)
             else:
                 plan = Plan(actor, origin, heading, s, length, v, priority=actor.id)
             if grid.ground_z(plan.xy(plan.s0)) > 0 and placer.add(plan, 0.2):
+                if standing:
+                    plan.heading = _standing_heading(grid, origin, heading, s, way)
                 break
+
+
+def _standing_heading(grid: Grid, origin: np.ndarray, heading: float, s: float, way: float) -> float:
+    """Which way a pedestrian standing at arc length ``s`` of a sidewalk line faces, from one
+    uniform variate ``way`` in [0, 1): across the road ahead or behind when it waits at a corner
+    (within ``WAIT_AT_CURB`` of the curb), otherwise along the sidewalk either way, sometimes
+    towards the road or the buildings. The variate picks the way; what is left of it turns the
+    person a little (up to ``TURN`` either side). The road the line runs along is to its left."""
+    d_curb = _curb_distances(grid, origin, heading, s)
+    if np.abs(d_curb).min() <= WAIT_AT_CURB:
+        base = np.array([heading if d_curb[np.abs(d_curb).argmin()] > 0 else heading + np.pi])
+        k, rest = 0, way
+    else:
+        base = heading + np.array([0.0, np.pi, np.pi / 2, -np.pi / 2])
+        edges = np.cumsum(STANDING_WAYS)
+        k = int(np.searchsorted(edges, way, side="right"))
+        rest = (way - (edges[k] - STANDING_WAYS[k])) / STANDING_WAYS[k]
+    yaw = base[k] + TURN * (2 * rest - 1)
+    return float(np.arctan2(np.sin(yaw), np.cos(yaw)))
+
+
+def _curb_distances(grid: Grid, origin: np.ndarray, heading: float, s: float) -> np.ndarray:
+    """Signed distances (m) along a sidewalk line from arc length ``s`` to the near curb of every
+    road the line crosses: positive ahead, negative behind."""
+    rel = _crossings(grid, origin, heading) - s
+    return np.where(rel > 0, rel - grid.road_half_width, rel + grid.road_half_width)
+
+
+def _crossings(grid: Grid, origin: np.ndarray, heading: float) -> np.ndarray:
+    """(k,) arc lengths at which a sidewalk line from ``origin`` along ``heading`` (axis-aligned)
+    crosses the centreline of each road across it."""
+    along_x = abs(np.cos(heading)) > 0.5
+    crosses = grid.xs if along_x else grid.ys
+    o, sgn = (origin[0], np.sign(np.cos(heading))) if along_x else (origin[1], np.sign(np.sin(heading)))
+    return (crosses - o) * sgn
+
+
+def _face_groups(plans: list[Plan]) -> None:
+    """Standing pedestrians within ``GROUP_RADIUS`` of one another turn to face the middle of the
+    others: people chatting, not a queue."""
+    still = [p for p in plans if p.actor.cls == "pedestrian" and p.v_des == 0.0]
+    if len(still) < 2:
+        return
+    xy = np.array([p.xy(p.s0) for p in still])                       # (k, 2)
+    near = np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1)) <= GROUP_RADIUS
+    np.fill_diagonal(near, False)
+    count = near.sum(1)
+    centre = (near @ xy) / np.maximum(count, 1)[:, None]              # (k, 2) the others' middle
+    for p, n, c, own in zip(still, count, centre, xy):
+        if n:
+            p.heading = float(np.arctan2(c[1] - own[1], c[0] - own[0]))
 
 
 def _before_crossing(grid: Grid, origin: np.ndarray, heading: float, length: float,
@@ -314,10 +377,7 @@ def _before_crossing(grid: Grid, origin: np.ndarray, heading: float, length: flo
     """Arc length a few metres before the curb of a road that the sidewalk line crosses, or None
     if it crosses none far enough from its ends."""
     hw = grid.road_half_width
-    along_x = abs(np.cos(heading)) > 0.5
-    crosses = grid.xs if along_x else grid.ys
-    o, sgn = (origin[0], np.sign(np.cos(heading))) if along_x else (origin[1], np.sign(np.sin(heading)))
-    s_cross = (crosses - o) * sgn
+    s_cross = _crossings(grid, origin, heading)
     s_cross = s_cross[(s_cross > hw + 8) & (s_cross < length - hw - 8)]
     if len(s_cross) == 0:
         return None

@@ -38,10 +38,10 @@ CYCLES = ("motorcycle", "bicycle")
 class Actor:
     """One annotated (or, for the ego, unannotated) object.
 
-    ``mesh`` is in the box frame: origin at the box centre, x along the length (heading),
-    z up. Its faces carry ``face_colors`` and a per-face ``reflectivity`` (0..1, for the lidar)
-    in ``mesh.metadata["reflectivity"]``. ``surface`` is (k, 6) points + outward normals on the
-    mesh, box frame, used to measure visibility.
+    ``mesh`` is in the box frame: origin at the box centre, x along the length (heading: the
+    actor's front is +x), z up. Its faces carry ``face_colors`` and a per-face ``reflectivity``
+    (0..1, for the lidar) in ``mesh.metadata["reflectivity"]``. ``surface`` is (k, 6) points +
+    outward normals on the mesh, box frame, used to measure visibility.
     """
     id: int
     cls: str
