@@ -15,10 +15,10 @@ import trimesh
 
 from .parts import SECTIONS, Parts, paint_reflectivity
 from .people import bicycle, motorcycle, pedestrian
-from .vehicles import bus, car, truck
+from .vehicles import bus, car, construction_vehicle, trailer, truck
 
-__all__ = ["Parts", "paint_reflectivity", "car", "truck", "bus", "pedestrian", "bicycle", "motorcycle",
-           "traffic_cone", "barrier", "surface_samples"]
+__all__ = ["Parts", "paint_reflectivity", "car", "truck", "bus", "construction_vehicle", "trailer", "pedestrian",
+           "bicycle", "motorcycle", "traffic_cone", "barrier", "actor_mesh", "surface_samples"]
 
 
 def traffic_cone(l, w, h) -> trimesh.Trimesh:
@@ -37,6 +37,33 @@ def barrier(l, w, h) -> trimesh.Trimesh:
     p.box((l * 0.95, w * 0.98, h * 0.6), (0, 0, -h / 2 + 0.3 * h), (200, 200, 195), 0.5)
     p.box((l * 0.55, w * 0.98, h * 0.38), (0, 0, -h / 2 + 0.79 * h), (220, 30, 30), 0.8)
     return p.build()
+
+
+def actor_mesh(cls: str, size, paint, clothes, rider: bool) -> trimesh.Trimesh:
+    """The mesh of an actor of class ``cls`` in its (l, w, h) ``size`` box; ``paint`` colours
+    vehicles and cycles, ``clothes`` (top, bottom) people and riders (``rider``: cycles only)."""
+    l, w, h = size
+    if cls == "car":
+        return car(l, w, h, paint)
+    if cls == "truck":
+        return truck(l, w, h, paint)
+    if cls == "bus":
+        return bus(l, w, h, paint)
+    if cls == "construction_vehicle":
+        return construction_vehicle(l, w, h, paint)
+    if cls == "trailer":
+        return trailer(l, w, h, paint)
+    if cls == "motorcycle":
+        return motorcycle(l, w, h, paint, clothes if rider else None)
+    if cls == "bicycle":
+        return bicycle(l, w, h, paint, clothes if rider else None)
+    if cls == "pedestrian":
+        return pedestrian(l, w, h, *clothes).build()
+    if cls == "traffic_cone":
+        return traffic_cone(l, w, h)
+    if cls == "barrier":
+        return barrier(l, w, h)
+    raise ValueError(f"no mesh for class {cls!r}")
 
 
 def surface_samples(mesh: trimesh.Trimesh, count: int, seed: int) -> np.ndarray:

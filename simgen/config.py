@@ -54,6 +54,16 @@ class ActorsConfig:
     cones_per_km: float = field(default=8.0, metadata=allowed(0.0, 200.0))
     barriers_per_km: float = field(default=6.0, metadata=allowed(0.0, 200.0))
     stop_probability: float = field(default=0.2, metadata=allowed(0.0, 1.0))
+    # Parked trucks' and motorcycles' shares of the parking-strip slots that hold a vehicle.
+    parked_truck_fraction: float = field(default=0.06, metadata=allowed(0.0, 1.0))
+    parked_motorcycle_fraction: float = field(default=0.06, metadata=allowed(0.0, 1.0))
+    # Road works: a curb-lane segment closed by cones and barriers with a construction vehicle.
+    construction_zones_per_km: float = field(default=0.0, metadata=allowed(0.0, 50.0))
+    # Trailers: the share of moving trucks that tow one, and unhitched ones parked at the curb.
+    hitched_trailer_fraction: float = field(default=0.0, metadata=allowed(0.0, 1.0))
+    parked_trailers_per_km: float = field(default=0.0, metadata=allowed(0.0, 100.0))
+    # Bus stops in the parking strips, each with a bus standing at it.
+    bus_stops_per_km: float = field(default=0.0, metadata=allowed(0.0, 100.0))
 
 
 @dataclass(frozen=True)
@@ -172,7 +182,7 @@ class SceneConfig:
     source: str = field(default="", metadata={"internal": True})
 
 
-VEHICLE_CLASSES = ("car", "truck", "bus", "motorcycle")
+VEHICLE_CLASSES = ("car", "truck", "bus", "motorcycle", "construction_vehicle")
 
 # Keys that presets once had, with why they went: refused like any unknown key, with the reason.
 REMOVED_KEYS = {

@@ -23,7 +23,7 @@ from pyquaternion import Quaternion
 from . import geometry
 from . import lidarseg
 from .camera import STATIC_TILE, static_tiles
-from .world import CYCLES, Actor, World
+from .world import CYCLES, VEHICLES, Actor, World
 
 VISIBILITY_BINS = np.array([0.4, 0.6, 0.8])
 MOVING_SPEED = {"pedestrian": 0.2}   # m/s above which an actor counts as moving
@@ -126,7 +126,7 @@ def attribute(actor: Actor, speed: float) -> str | None:
         return "pedestrian.moving" if moving else "pedestrian.standing"
     if actor.cls in CYCLES:
         return "cycle.with_rider" if actor.rider else "cycle.without_rider"
-    if actor.cls in ("car", "truck", "bus"):
+    if actor.cls in VEHICLES:
         if actor.parked:
             return "vehicle.parked"
         return "vehicle.moving" if moving else "vehicle.stopped"

@@ -6,7 +6,9 @@ still stop in time (v = sqrt(2 b gap)). When two actors wait for each other (eac
 other's corridor), the one with the lower priority number goes first: pedestrians, then cycles,
 then vehicles, then the ego. Finally a hard constraint keeps the world valid: a proposed move
 that would make two footprints overlap is not taken (that actor stands still this step). So no
-two objects ever intersect, by construction, and the tests check it independently.
+two objects ever intersect, by construction, and the tests check it independently. A hitched
+trailer does not drive: it rides its tractor's path a fixed distance behind it, and the two move
+together or not at all.
 """
 from __future__ import annotations
 
@@ -40,17 +42,33 @@ class Paths:
     a_max: np.ndarray         # (n,) maximum acceleration (m/s^2)
     s0_gap: np.ndarray        # (n,) standstill gap (m)
     extra: np.ndarray         # (n,) look-ahead beyond the braking distance (m)
+    tractor: np.ndarray       # (n,) int: a hitched trailer's tractor, -1 for everyone else
+    hitch: np.ndarray         # (n,) a trailer's arc length behind its tractor's (m), 0 for the others
 
     @classmethod
     def of(cls, plans: list[Plan]) -> "Paths":
         yaw = np.array([p.heading for p in plans])
         dyn_params = np.array([DYNAMICS.get(p.actor.cls, VEHICLE_DYNAMICS) for p in plans])
+        index = {id(p): i for i, p in enumerate(plans)}
+        tractor = np.array([index[id(p.tractor)] if p.tractor is not None else -1 for p in plans], dtype=np.int64)
+        hitch = np.array([p.tractor.s0 - p.s0 if p.tractor is not None else 0.0 for p in plans])
         return cls(origin=np.array([p.origin for p in plans]), yaw=yaw, u=np.stack([np.cos(yaw), np.sin(yaw)], 1),
                    size=np.array([p.actor.size for p in plans]), length=np.array([p.length for p in plans]),
                    v_des=np.array([p.v_des for p in plans]), priority=np.array([p.priority for p in plans]),
                    stop=np.array([p.stop if p.stop else (np.inf, np.inf) for p in plans]),
                    moving=np.array([p.v_des > 0 for p in plans]), b_comf=dyn_params[:, 0], a_max=dyn_params[:, 1],
-                   s0_gap=dyn_params[:, 2], extra=dyn_params[:, 3])
+                   s0_gap=dyn_params[:, 2], extra=dyn_params[:, 3], tractor=tractor, hitch=hitch)
+
+    def follow_tractors(self, s: np.ndarray) -> np.ndarray:
+        """Arc lengths ``s`` (n,) with every hitched trailer put its hitch distance behind its
+        tractor: the trailer's kingpin rides on the tractor's path. Paths are straight, so a
+        trailer on its tractor's line with the tractor's heading follows it exactly."""
+        towed = self.tractor >= 0
+        if not towed.any():
+            return s
+        s = s.copy()
+        s[towed] = s[self.tractor[towed]] - self.hitch[towed]
+        return s
 
     def boxes_at(self, s: np.ndarray) -> np.ndarray:
         """(n, 7) footprints at arc lengths ``s`` (n,)."""
@@ -68,14 +86,14 @@ def simulate(plans: list[Plan], static_boxes: np.ndarray, times: np.ndarray) -> 
     """
     paths = Paths.of(plans)
     dt = float(times[1] - times[0])
-    s = np.array([p.s0 for p in plans], dtype=np.float64)
+    s = paths.follow_tractors(np.array([p.s0 for p in plans], dtype=np.float64))
     v = np.where(paths.moving, paths.v_des, 0.0)
     S = np.zeros((len(plans), len(times)))
     S[:, 0] = s
     for k in range(len(times) - 1):
         v_new = _next_speed(paths, s, v, float(times[k]), static_boxes, dt)
         s_new = np.minimum(s + v_new * dt, np.maximum(paths.length - paths.size[:, 0] / 2, s))
-        s_new = _undo_overlapping_moves(paths, s, s_new, static_boxes)
+        s_new = _undo_overlapping_moves(paths, s, paths.follow_tractors(s_new), static_boxes)
         v = (s_new - s) / dt
         s = s_new
         S[:, k + 1] = s
@@ -129,7 +147,8 @@ def _next_speed(paths: Paths, s: np.ndarray, v: np.ndarray, t: float, static_box
 
 def _undo_overlapping_moves(paths: Paths, s: np.ndarray, s_new: np.ndarray, static_boxes: np.ndarray) -> np.ndarray:
     """The hard constraint: moves from ``s`` to ``s_new`` (n,) that would make footprints
-    overlap are not taken, repeated until no taken move does."""
+    overlap are not taken, repeated until no taken move does. A tractor and its trailer move
+    together or not at all."""
     s_new = s_new.copy()
     while True:
         moved = np.nonzero(s_new != s)[0]
@@ -144,4 +163,7 @@ def _undo_overlapping_moves(paths: Paths, s: np.ndarray, s_new: np.ndarray, stat
         bad = geometry.bev_overlap_pairwise(nb[mi_g], all_boxes[oj], HARD_MARGIN)
         if not bad.any():
             return s_new
-        s_new[mi_g[bad]] = s[mi_g[bad]]
+        stuck = mi_g[bad]
+        stuck = np.concatenate([stuck, paths.tractor[stuck][paths.tractor[stuck] >= 0]])
+        s_new[stuck] = s[stuck]
+        s_new = paths.follow_tractors(s_new)

@@ -2,36 +2,23 @@
 
 Every actor gets a straight path (origin, heading) and a desired speed; static actors get speed 0.
 Placement is rejection-sampled so that no two footprints overlap at the start; the motion model
-(:mod:`simgen.motion`) keeps it that way.
+(:mod:`simgen.motion`) keeps it that way. The shared machinery is in :mod:`simgen.placement`,
+road works in :mod:`simgen.roadworks`, bus stops and trailers in :mod:`simgen.curbside`.
 """
 from __future__ import annotations
-
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import assets
-from . import geometry
 from .config import ActorsConfig, SceneConfig
+from .curbside import hitch, place_bus_stops, place_parked_trailers, place_train
 from .layout import CURB_HEIGHT, MAP_PAD, Grid
+# SIZE_MEAN and make_actor are read from here by callers that build single actors.
+from .placement import (EGO_SIZE, SIZE_MEAN, SPEED, ActorMaker, Placer, Plan, make_actor, lane,  # noqa: F401
+                        sidewalk_line)
+from .roadworks import place_construction_zones
 from .world import Actor
 
-# Mean (l, w, h) per class from the nuScenes anchor configs; the spread is relative.
-SIZE_MEAN = {
-    "car": (4.61, 1.95, 1.72), "truck": (6.74, 2.46, 2.73), "bus": (11.19, 2.94, 3.47),
-    "motorcycle": (2.10, 0.76, 1.44), "bicycle": (1.69, 0.60, 1.27),
-    "pedestrian": (0.73, 0.66, 1.76), "traffic_cone": (0.40, 0.40, 1.06), "barrier": (0.49, 2.49, 0.98),
-}
-SIZE_SPREAD = {"car": 0.08, "truck": 0.15, "bus": 0.06, "motorcycle": 0.07, "bicycle": 0.06,
-               "pedestrian": 0.08, "traffic_cone": 0.12, "barrier": 0.1}
-EGO_SIZE = (4.08, 1.73, 1.56)   # the nuScenes ego, a Renault Zoe
-SPEED = {"car": (6.0, 14.0), "truck": (5.0, 11.0), "bus": (5.0, 10.0), "motorcycle": (6.0, 14.0),
-         "bicycle": (3.0, 7.0), "pedestrian": (0.5, 1.8)}
-PAINT = np.array([(200, 200, 205), (30, 30, 35), (150, 20, 25), (20, 50, 130), (120, 125, 130),
-                  (235, 235, 230), (40, 90, 60), (200, 160, 40), (90, 60, 40), (60, 140, 190)], float)
-CLOTHES = np.array([(40, 40, 60), (150, 30, 30), (30, 90, 150), (200, 200, 190), (60, 60, 60),
-                    (180, 140, 60), (20, 110, 70), (110, 60, 120), (230, 120, 40), (90, 80, 70)], float)
-N_SURFACE = 256  # surface samples per actor for the visibility measure
 # Standing pedestrians: the shares of those facing along the sidewalk (either way), towards the
 # road and towards the buildings; how close to a curb one waits to cross; the largest turn away
 # from the way faced (rad); how close people stand to talk to each other (m).
@@ -41,132 +28,6 @@ TURN = 0.3
 GROUP_RADIUS = 2.5
 
 
-@dataclass
-class Plan:
-    """An actor before simulation: its path, motion parameters and initial footprint."""
-    actor: Actor
-    origin: np.ndarray          # (2,) path start, global
-    heading: float              # path direction (rad); also the actor yaw
-    s0: float                   # initial arc length along the path
-    length: float               # path length
-    v_des: float                # desired speed (0 for static actors)
-    z_ground: float = 0.0       # ground height under a static actor
-    stop: tuple = ()            # (t_start, t_end) of a planned stop, or ()
-    priority: int = 0           # lower goes first when two actors wait for each other
-
-    def xy(self, s: float) -> np.ndarray:
-        return self.origin + s * np.array([np.cos(self.heading), np.sin(self.heading)])
-
-    def box(self) -> np.ndarray:
-        l, w, h = self.actor.size
-        return np.array([*self.xy(self.s0), 0.0, l, w, h, self.heading])
-
-
-@dataclass
-class Placer:
-    """Rejection sampling against the footprints already placed."""
-    static: np.ndarray
-    boxes: list = field(default_factory=list)
-    plans: list = field(default_factory=list)
-
-    def free(self, box: np.ndarray, margin: float) -> bool:
-        others = np.concatenate([self.static, np.array(self.boxes).reshape(-1, 7)])
-        if len(others) == 0:
-            return True
-        near = np.hypot(*(others[:, :2] - box[:2]).T) < (np.hypot(*box[3:5]) + np.hypot(others[:, 3], others[:, 4])) / 2 + 2 * margin
-        return not near.any() or not geometry.bev_overlap(box[None], others[near], margin).any()
-
-    def add(self, plan: Plan, margin: float) -> bool:
-        box = plan.box()
-        if not self.free(box, margin):
-            return False
-        self.boxes.append(box)
-        self.plans.append(plan)
-        return True
-
-
-def draw_size(cls: str, rng: np.random.Generator) -> tuple[float, float, float]:
-    mean = np.array(SIZE_MEAN[cls])
-    f = np.clip(1.0 + SIZE_SPREAD[cls] * rng.standard_normal(3), 0.75, 1.3)
-    if cls == "pedestrian":   # keep a person's proportions: one scale for l and w
-        f[1] = f[0]
-    return tuple(float(v) for v in mean * f)
-
-
-def make_actor(idx: int, cls: str, rng: np.random.Generator, parked=False, rider=True) -> Actor:
-    """Builds the mesh and surface samples of one actor of class ``cls``."""
-    size = draw_size(cls, rng)
-    l, w, h = size
-    paint = PAINT[rng.integers(len(PAINT))] * rng.uniform(0.85, 1.1)
-    paint = tuple(np.clip(paint, 0, 255))
-    clothes = (tuple(CLOTHES[rng.integers(len(CLOTHES))]), tuple(CLOTHES[rng.integers(len(CLOTHES))]))
-    if cls == "car":
-        mesh = assets.car(l, w, h, paint)
-    elif cls == "truck":
-        mesh = assets.truck(l, w, h, paint)
-    elif cls == "bus":
-        mesh = assets.bus(l, w, h, paint)
-    elif cls == "motorcycle":
-        # A parked motorcycle's box ends at its windshield; a ridden one's at the rider's head.
-        h = rng.uniform(1.25, 1.4) if not rider else max(h, 1.5 + 0.05 * rng.standard_normal())
-        size = (l, w, h)
-        mesh = assets.motorcycle(l, w, h, paint, clothes if rider else None)
-    elif cls == "bicycle":
-        # The box holds the rider: nuScenes annotates a ridden cycle with its rider.
-        h = max(h, 1.55 + 0.1 * rng.standard_normal()) if rider else rng.uniform(0.95, 1.1)
-        size = (l, w, h)
-        mesh = assets.bicycle(l, w, h, paint, clothes if rider else None)
-    elif cls == "pedestrian":
-        mesh = assets.pedestrian(l, w, h, *clothes).build()
-    elif cls == "traffic_cone":
-        mesh = assets.traffic_cone(l, w, h)
-    elif cls == "barrier":
-        mesh = assets.barrier(l, w, h)
-    else:
-        raise ValueError(cls)
-    surface = assets.surface_samples(mesh, N_SURFACE, seed=int(rng.integers(2**31)))
-    return Actor(idx, cls, size, mesh, surface, parked=parked, rider=rider)
-
-
-def _lane(grid: Grid, rng: np.random.Generator, lateral: float | None = None):
-    """A random lane: (origin (2,), heading, path length, lane lateral offset)."""
-    cfg = grid.cfg
-    W, H = grid.extent
-    horizontal = rng.random() < 0.5
-    centres = grid.ys if horizontal else grid.xs
-    c = centres[rng.integers(len(centres))]
-    forward = rng.random() < 0.5
-    if lateral is None:
-        lateral = (rng.integers(cfg.lanes_per_direction) + 0.5) * cfg.lane_width
-    # Right-hand traffic: the lane lies to the right of the direction of travel.
-    if horizontal:
-        heading = 0.0 if forward else np.pi
-        origin = np.array([MAP_PAD, c - lateral]) if forward else np.array([MAP_PAD + W, c + lateral])
-        length = W
-    else:
-        heading = np.pi / 2 if forward else -np.pi / 2
-        origin = np.array([c + lateral, MAP_PAD]) if forward else np.array([c - lateral, MAP_PAD + H])
-        length = H
-    return origin, heading, length, lateral
-
-
-def _sidewalk_line(grid: Grid, rng: np.random.Generator, lateral: float):
-    """A line along a sidewalk at ``lateral`` from a road centreline (either side, either way)."""
-    origin, heading, length, _ = _lane(grid, rng, lateral=lateral)
-    return origin, heading, length
-
-
-@dataclass
-class ActorMaker:
-    """Makes the actors of a scene, numbered 1, 2, ... in the order they are made (the ego is 0)."""
-    rng: np.random.Generator
-    last_id: int = 0
-
-    def __call__(self, cls: str, **kw) -> Actor:
-        self.last_id += 1
-        return make_actor(self.last_id, cls, self.rng, **kw)
-
-
 def place_actors(cfg: SceneConfig, grid: Grid, static: np.ndarray, duration: float,
                  rng: np.random.Generator) -> list[Plan]:
     """All actors of a scene: the ego first (id 0), then everyone else, section by section (each
@@ -174,6 +35,9 @@ def place_actors(cfg: SceneConfig, grid: Grid, static: np.ndarray, duration: flo
     placer = Placer(static)
     new = ActorMaker(rng)
     _place_ego(cfg, grid, placer, duration, rng)
+    place_construction_zones(cfg, grid, placer, new, rng)
+    place_bus_stops(cfg, grid, placer, new, rng)
+    place_parked_trailers(cfg, grid, placer, new, rng)
     _place_parking_strips(cfg.actors, grid, placer, new, rng)
     _place_moving_vehicles(cfg.actors, grid, placer, new, duration, rng)
     _place_moving_bicycles(cfg, grid, placer, new, rng)
@@ -187,7 +51,7 @@ def _place_ego(cfg: SceneConfig, grid: Grid, placer: Placer, duration: float, rn
     """The ego: in a lane, starting near the world centre, not annotated."""
     W, H = grid.extent
     for _ in range(1000):
-        origin, heading, length, _ = _lane(grid, rng)
+        origin, heading, length, _ = lane(grid, rng)
         v = rng.uniform(*cfg.ego.speed)
         centre = MAP_PAD + np.array([W, H]) / 2
         d = np.array([np.cos(heading), np.sin(heading)])
@@ -224,7 +88,7 @@ def _place_parking_strips(a: ActorsConfig, grid: Grid, placer: Placer, new: Acto
 def _fill_slot(a: ActorsConfig, placer: Placer, new: ActorMaker, rng: np.random.Generator, pos: np.ndarray,
                heading: float, cone_p: float, barrier_p: float) -> None:
     """One parking slot at ``pos`` (2,): a cone group, a barrier row, a parked vehicle or nothing."""
-    moto_p, truck_p = 0.06, 0.06
+    moto_p, truck_p = a.parked_motorcycle_fraction, a.parked_truck_fraction
     d = np.array([np.cos(heading), np.sin(heading)])
     r = rng.random()
     if r < cone_p:
@@ -243,21 +107,23 @@ def _fill_slot(a: ActorsConfig, placer: Placer, new: ActorMaker, rng: np.random.
 
 def _place_moving_vehicles(a: ActorsConfig, grid: Grid, placer: Placer, new: ActorMaker, duration: float,
                            rng: np.random.Generator) -> None:
-    """Moving vehicles in lanes, with an occasional planned stop."""
+    """Moving vehicles in lanes, with an occasional planned stop; some trucks tow a trailer."""
     mix = list(a.vehicle_mix)
     weights = np.array([a.vehicle_mix[k] for k in mix])
     for _ in range(int(round(a.vehicles_per_km * grid.road_km))):
         cls = mix[rng.choice(len(mix), p=weights / weights.sum())]
         actor = new(cls, rider=True)
+        towed = cls == "truck" and a.hitched_trailer_fraction > 0 and rng.random() < a.hitched_trailer_fraction
+        trailer = new("trailer") if towed else None
         for _try in range(20):
-            origin, heading, length, _ = _lane(grid, rng)
+            origin, heading, length, _ = lane(grid, rng)
             stop = ()
             if rng.random() < a.stop_probability:
                 t0 = rng.uniform(0, duration)
                 stop = (t0, t0 + rng.uniform(1.5, 4.0))
             plan = Plan(actor, origin, heading, rng.uniform(5, length - 5), length,
                         rng.uniform(*SPEED[cls]), stop=stop, priority=2000 + actor.id)
-            if placer.add(plan, 1.0):
+            if place_train(placer, plan, hitch(trailer, plan) if towed else None, 1.0):
                 break
 
 
@@ -268,7 +134,7 @@ def _place_moving_bicycles(cfg: SceneConfig, grid: Grid, placer: Placer, new: Ac
     for _ in range(int(round(cfg.actors.bicycles_per_km * grid.road_km))):
         actor = new("bicycle", rider=True)
         for _try in range(20):
-            origin, heading, length, _ = _lane(grid, rng, lateral=edge)
+            origin, heading, length, _ = lane(grid, rng, lateral=edge)
             plan = Plan(actor, origin, heading, rng.uniform(5, length - 5), length,
                         rng.uniform(*SPEED["bicycle"]), priority=1000 + actor.id)
             if placer.add(plan, 0.5):
@@ -281,7 +147,7 @@ def _place_parked_bicycles(cfg: SceneConfig, grid: Grid, placer: Placer, new: Ac
     for _ in range(int(round(cfg.actors.parked_bicycles_per_km * grid.road_km))):
         actor = new("bicycle", parked=True, rider=False)
         for _try in range(20):
-            origin, heading, length = _sidewalk_line(grid, rng, grid.road_half_width + cfg.layout.sidewalk_width - 1.0)
+            origin, heading, length = sidewalk_line(grid, rng, grid.road_half_width + cfg.layout.sidewalk_width - 1.0)
             s = rng.uniform(5, length - 5)
             plan = Plan(actor, origin + s * np.array([np.cos(heading), np.sin(heading)]),
                         heading + np.pi / 2, 0.0, 0.0, 0.0, z_ground=CURB_HEIGHT)
@@ -299,7 +165,7 @@ def _place_pedestrians(cfg: SceneConfig, grid: Grid, placer: Placer, new: ActorM
         standing = rng.random() < cfg.actors.standing_fraction
         crossing = not standing and rng.random() < cfg.actors.crossing_fraction
         for _try in range(30):
-            origin, heading, length = _sidewalk_line(grid, rng, rng.uniform(walk_lo, walk_hi))
+            origin, heading, length = sidewalk_line(grid, rng, rng.uniform(walk_lo, walk_hi))
             if crossing:
                 s = _before_crossing(grid, origin, heading, length, rng)
                 if s is None:

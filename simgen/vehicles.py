@@ -1,4 +1,4 @@
-"""Procedural cars, trucks and buses in the box frame, each with a front and a back.
+"""Procedural cars, trucks, buses, construction vehicles and trailers in the box frame, each with a front and a back.
 
 The box frame has its origin at the box centre, x along the length (the front is +x), y to the
 left and z up; every part lies inside the (l, w, h) box. What tells the front from the back, to
@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from .parts import GLASS, GLASS_REFL, TIRE, Parts, lamps_and_plates, paint_reflectivity
+from .parts import (GLASS, GLASS_REFL, HEADLIGHT, HEADLIGHT_REFL, PLATE_REAR, PLATE_REFL, TAILLIGHT, TAILLIGHT_REFL,
+                    TIRE, Parts, lamps_and_plates, paint_reflectivity)
 
 
 def _wheels(p: Parts, w, h, r, axle_x, tire_w=0.25):
@@ -108,4 +109,63 @@ def bus(l, w, h, color) -> trimesh.Trimesh:
     lamps_and_plates(p, l / 2, -l / 2, hw - 0.3, z_head=floor + 0.5, z_tail=lo - 0.25,
                      z_plate_front=floor + 0.25, z_plate_rear=lo - 0.6)
     _wheels(p, w, h, r, (l / 2 - 2.6, -l / 2 + 3.4), tire_w=0.35)
+    return p.build()
+
+
+def construction_vehicle(l, w, h, color) -> trimesh.Trimesh:
+    """A tracked excavator: two crawler tracks, a house with the cab at its front left and a
+    counterweight at its back, and a boom rising from the house's front with the arm and bucket
+    lowered ahead of it (its front is the working end)."""
+    p = Parts()
+    paint, refl = color, paint_reflectivity(color)
+    bottom, top = -h / 2, h / 2
+    track_h, track_w = 0.8, min(0.6, 0.25 * w)
+    x_track = (-l / 2 + 0.2, l / 2 - 1.2)                           # the crawlers; the bucket reaches beyond
+    for side in (-1, 1):
+        p.prism([(x_track[0], bottom + 0.35), (x_track[0] + 0.35, bottom), (x_track[1] - 0.35, bottom),
+                 (x_track[1], bottom + 0.35), (x_track[1] - 0.15, bottom + track_h), (x_track[0] + 0.15, bottom + track_h)],
+                track_w / 2, TIRE, 0.05, y=side * (w / 2 - track_w / 2))
+    house_lo, house_top = bottom + track_h + 0.1, bottom + 0.62 * h
+    x_house = (-l / 2 + 0.04, 0.12 * l)
+    p.box((x_house[1] - x_house[0], 0.95 * w, house_top - house_lo), (sum(x_house) / 2, 0, (house_lo + house_top) / 2),
+          paint, refl)
+    p.box((0.4, 0.9 * w, 0.5), (x_house[0] + 0.2, 0, house_top + 0.25), (60, 60, 60), 0.3)       # counterweight
+    cab_y = w / 2 - 0.45
+    p.prism([(x_house[1] - 1.6, house_top), (x_house[1] - 0.02, house_top), (x_house[1] - 0.2, top - 0.02),
+             (x_house[1] - 1.6, top - 0.02)], 0.42, GLASS, GLASS_REFL, y=cab_y)                       # the cab
+    p.box((1.4, 0.86, 0.06), (x_house[1] - 0.88, cab_y, top - 0.03), paint, refl)                     # cab roof
+    x_boom, x_tip = x_house[1] - 0.6, l / 2 - 1.4
+    p.prism([(x_boom, house_lo + 0.3), (x_boom + 0.5, house_lo + 0.3), (x_tip + 0.3, top - 0.45), (x_tip - 0.2, top - 0.1)],
+            0.22, paint, refl, y=-0.15)                                                               # boom
+    p.prism([(x_tip - 0.2, top - 0.1), (x_tip + 0.3, top - 0.45), (l / 2 - 0.45, bottom + 0.75), (l / 2 - 0.8, bottom + 0.8)],
+            0.18, paint, refl, y=-0.15)                                                               # arm
+    p.prism([(l / 2 - 1.05, bottom + 0.75), (l / 2 - 0.35, bottom + 0.95), (l / 2 - 0.02, bottom + 0.35),
+             (l / 2 - 0.4, bottom + 0.02)], 0.5, (70, 70, 70), 0.3, y=-0.15)                          # bucket
+    lamps_and_plates(p, x_house[1] + 0.04, -l / 2, 0.4 * w, z_head=house_top - 0.25, z_tail=house_lo + 0.3,
+                     z_plate_front=house_lo + 0.15, z_plate_rear=house_lo + 0.6, head=(0.2, 0.12), tail=(0.2, 0.12))
+    return p.build()
+
+
+def trailer(l, w, h, color) -> trimesh.Trimesh:
+    """A semi-trailer: a tall box on a floor that the tractor's fifth wheel carries at the front
+    (kingpin end, with landing legs and a rounded front top), three axles at the back with red
+    tail lights, a yellow plate and an underrun bar. The front (+x) is the hitch end."""
+    p = Parts()
+    paint, refl = color, paint_reflectivity(color)
+    bottom, top = -h / 2, h / 2
+    r = 0.5
+    floor = bottom + 1.25
+    xn, xt = l / 2 - 0.04, -l / 2 + 0.04                             # the box's ends; the lamps stand out
+    p.prism([(xt, floor), (xn, floor), (xn, top - 0.2), (xn - 0.2, top), (xt, top)], 0.99 * w / 2, paint, refl)
+    p.box((xn - xt, 0.98 * w, 0.06), ((xn + xt) / 2, 0, floor + 0.4), (200, 30, 30), 0.9)        # a reflective stripe
+    p.box((l - 0.4, 0.5 * w, 0.25), (-0.2, 0, floor - 0.125), (30, 30, 30), 0.1)                 # chassis rails
+    for side in (-1, 1):                                             # landing legs behind the kingpin
+        p.box((0.15, 0.15, floor - bottom - 0.02), (l / 2 - 2.2, side * 0.35 * w, (bottom + 0.02 + floor) / 2), (70, 70, 70), 0.3)
+    p.box((0.1, 0.9 * w, 0.15), (-l / 2 + 0.05, 0, bottom + 0.55), (40, 40, 40), 0.2)            # rear underrun bar
+    hw = w / 2 - 0.3
+    for side in (-1.0, 1.0):
+        p.box((0.04, 0.3, 0.15), (-l / 2 + 0.02, side * hw, floor - 0.35), TAILLIGHT, TAILLIGHT_REFL)
+        p.box((0.04, 0.12, 0.08), (l / 2 - 0.02, side * hw, top - 0.35), HEADLIGHT, HEADLIGHT_REFL)  # front markers
+    p.box((0.04, 0.52, 0.11), (-l / 2 + 0.02, 0.0, floor - 0.6), PLATE_REAR, PLATE_REFL)
+    _wheels(p, w, h, r, (-l / 2 + 1.5, -l / 2 + 2.8, -l / 2 + 4.1), tire_w=0.35)
     return p.build()

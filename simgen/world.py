@@ -21,6 +21,8 @@ CATEGORY = {
     "car": "vehicle.car",
     "truck": "vehicle.truck",
     "bus": "vehicle.bus.rigid",
+    "construction_vehicle": "vehicle.construction",
+    "trailer": "vehicle.trailer",
     "motorcycle": "vehicle.motorcycle",
     "bicycle": "vehicle.bicycle",
     "pedestrian": "human.pedestrian.adult",
@@ -28,7 +30,7 @@ CATEGORY = {
     "barrier": "movable_object.barrier",
 }
 CLASSES = tuple(CATEGORY)
-VEHICLES = ("car", "truck", "bus")
+VEHICLES = ("car", "truck", "bus", "construction_vehicle", "trailer")
 # The ego frame's origin is the rear axle, this far behind the centre of the ego's box.
 EGO_CENTRE_AHEAD_OF_ORIGIN = 1.3
 CYCLES = ("motorcycle", "bicycle")
@@ -51,6 +53,7 @@ class Actor:
     parked: bool = False       # a vehicle or cycle that will not move (attribute "parked"/"without_rider")
     rider: bool = True         # cycles: has a rider
     annotate: bool = True      # False for the ego
+    towed_by: int = -1         # a hitched trailer: its tractor's actor id (-1: not hitched)
 
 
 @dataclass

@@ -11,11 +11,12 @@ from simgen.world import CLASSES
 
 N_SAMPLES = 10
 CASES = [("tiny", 0), ("tiny", 1), ("urban", 0), ("urban", 1)]
-# Mean (l, w, h) per class, REFERENCE.md "Object sizes".
+# Mean (l, w, h) per class: the nuScenes anchor sizes of the detection literature (PointPillars, SECOND).
 SIZE_MEAN = {
     "car": (4.61, 1.95, 1.72), "truck": (6.74, 2.46, 2.73), "bus": (11.19, 2.94, 3.47),
     "motorcycle": (2.10, 0.76, 1.44), "bicycle": (1.69, 0.60, 1.27), "pedestrian": (0.73, 0.66, 1.76),
     "traffic_cone": (0.40, 0.40, 1.06), "barrier": (0.49, 2.49, 0.98),
+    "construction_vehicle": (6.38, 2.73, 3.13), "trailer": (12.01, 2.87, 3.82),
 }
 MAX_SPEED = {"pedestrian": 1.8, "bicycle": 7.0}
 EGO_MAX_SPEED = 15.0
