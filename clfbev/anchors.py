@@ -14,40 +14,12 @@ the anchor order ``(iy, ix, cls, rot)`` that :mod:`clfbev.head` uses everywhere.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
-# nuScenes detection classes in the devkit's order.
-CLASS_NAMES: tuple[str, ...] = (
-    "car",
-    "truck",
-    "construction_vehicle",
-    "bus",
-    "trailer",
-    "barrier",
-    "motorcycle",
-    "bicycle",
-    "pedestrian",
-    "traffic_cone",
-)
-
-# Mean box size per class (l, w, h) in metres, over the nuScenes train set (the values
-# PointPillars / SECOND use for their anchors).
-ANCHOR_SIZES: dict[str, tuple[float, float, float]] = {
-    "car": (4.61, 1.95, 1.72),
-    "truck": (6.74, 2.46, 2.73),
-    "bus": (11.19, 2.94, 3.47),
-    "trailer": (12.01, 2.87, 3.82),
-    "construction_vehicle": (6.38, 2.73, 3.13),
-    "motorcycle": (2.10, 0.76, 1.44),
-    "bicycle": (1.69, 0.60, 1.27),
-    "pedestrian": (0.73, 0.66, 1.76),
-    "traffic_cone": (0.40, 0.40, 1.06),
-    "barrier": (0.49, 2.49, 0.98),
-}
+from clfbev.settings import ANCHOR_ROTATIONS, ANCHOR_SIZES
 
 # The nuScenes LIDAR_TOP sits 1.84 m above the ego origin, which is on the ground, so the
 # ground plane is at z = -1.84 in the lidar frame and an object standing on it has its centre
@@ -58,10 +30,6 @@ ANCHOR_SIZES: dict[str, tuple[float, float, float]] = {
 # same ground within the spread of real boxes.) Anchors only need to be close: dz is regressed.
 GROUND_Z_LIDAR = -1.84
 ANCHOR_Z: dict[str, float] = {name: GROUND_Z_LIDAR + 0.5 * size[2] for name, size in ANCHOR_SIZES.items()}
-
-# Two anchor headings: along x and along y. Headings modulo pi are enough because the box
-# regression is pi-periodic (sin-difference) and a direction classifier adds the last pi.
-ANCHOR_ROTATIONS: tuple[float, ...] = (0.0, 0.5 * math.pi)
 
 # Per-class BEV-IoU matching thresholds (pos, neg): an anchor is positive when IoU >= pos,
 # negative when IoU < neg, ignored in between. Values of SECOND's nuScenes multi-head config
@@ -89,7 +57,7 @@ def _check_classes(class_names: Sequence[str]) -> None:
 
 def match_thresholds(class_names: Sequence[str]) -> list[tuple[float, float]]:
     """``(pos, neg)`` IoU thresholds in the order of ``class_names`` (the order of the anchor
-    class axis), as :func:`clfbev.assign.assign_targets` expects them."""
+    class axis), as :func:`clfbev.supervision.assign.assign_targets` expects them."""
     _check_classes(class_names)
     return [MATCH_THRESHOLDS[name] for name in class_names]
 
@@ -106,7 +74,7 @@ def make_anchors(
 
     Parameters
     ----------
-    class_names : classes in the order of the head's class axis (e.g. ``CLASS_NAMES``).
+    class_names : classes in the order of the head's class axis (e.g. :data:`clfbev.settings.DETECTION_CLASSES`).
     feature_size : ``(ny, nx)``, the height and width of the BEV feature map.
     pc_range : ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in metres, lidar frame; the map covers
         ``[xmin, xmax) x [ymin, ymax)``. The z limits are unused: anchor heights are per class.

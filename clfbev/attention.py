@@ -7,8 +7,7 @@ channels ``[h * d, (h + 1) * d)`` with ``d = C // heads``.
 The attention is ``softmax(q k^T / sqrt(d)) v``. When the weights are asked for (visualisation,
 tests) it is computed explicitly (matmul + softmax); otherwise by torch's fused
 ``scaled_dot_product_attention``, the same function without materialising the weights for the
-backward (on the CPU its flash kernel makes the window attention of the tiny model's MCM and
-BSM about 1.5x faster, forward + backward, than the explicit form).
+backward (on the CPU its flash kernel is faster than the explicit form, forward and backward).
 
 Complexity, with ``N = H * W`` BEV cells, ``h`` heads and ``C`` channels:
 
@@ -35,7 +34,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-MODES = ("exact", "window", "pooled")
+from clfbev.settings import ATTENTION_MODES
+
 
 
 def sinusoidal_pos_encoding_2d(
@@ -174,8 +174,8 @@ class BEVAttention(nn.Module):
         query_chunk: int | None = None,
     ) -> None:
         super().__init__()
-        if mode not in MODES:
-            raise ValueError(f"attention mode must be one of {MODES}, got {mode!r}")
+        if mode not in ATTENTION_MODES:
+            raise ValueError(f"attention mode must be one of {ATTENTION_MODES}, got {mode!r}")
         if heads < 1 or window < 1 or pool_stride < 1:
             raise ValueError(
                 f"heads, window and pool_stride must be >= 1, got {heads}, {window}, {pool_stride}"

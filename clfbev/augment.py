@@ -16,9 +16,9 @@ Two independent families, as in BEVDet / BEVFusion:
 Pixel coordinates use the pixel-edge convention of :mod:`clfbev.data`: pixel c covers [c, c + 1),
 so a resize by r is u' = r u exactly and a horizontal flip of a W-wide image is u' = W - u.
 
-Every function is pure (returns a new Sample; the input is not modified), computes in float64
-and returns each tensor in its input dtype, so a float64 Sample round-trips to ~1e-12. Randomness
-only enters through :func:`random_augment`'s explicit ``rng``.
+Every function is pure (returns a new Sample; the input is not modified), works on the Sample's
+numpy arrays, computes in float64 and returns each array in its input dtype, so a float64 Sample
+round-trips to ~1e-12. Randomness only enters through :func:`random_augment`'s explicit ``rng``.
 
 GT-paste (copy-paste of database objects) is :mod:`clfbev.gt_paste`.
 """
@@ -30,19 +30,13 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
-import torch
-from torch import Tensor
 
 from clfbev.data import Sample
 
 
-def _np64(t: Tensor) -> np.ndarray:
-    return t.detach().cpu().numpy().astype(np.float64)
-
-
-def _like(a: np.ndarray, ref: Tensor) -> Tensor:
-    """``a`` as a tensor with the dtype and device of ``ref``."""
-    return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ref.dtype, device=ref.device)
+def _like(a: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """``a`` (computed in float64) in the dtype of ``ref``, C-contiguous."""
+    return np.ascontiguousarray(a, dtype=ref.dtype)
 
 
 def _wrap_angle(a: np.ndarray) -> np.ndarray:
@@ -89,10 +83,10 @@ def global_transform(sample: Sample, rot_rad: float, scale: float, flip_y: bool)
     A = global_matrix(rot_rad, scale, flip_y)
     A3 = A[:3, :3]
 
-    pts = _np64(sample.points)
+    pts = sample.points.astype(np.float64)
     pts[:, :3] = pts[:, :3] @ A3.T
 
-    boxes = _np64(sample.gt_boxes)
+    boxes = sample.gt_boxes.astype(np.float64)
     boxes[:, 0:3] = boxes[:, 0:3] @ A3.T
     boxes[:, 3:6] = boxes[:, 3:6] * scale
     yaw = boxes[:, 6] + rot_rad
@@ -100,8 +94,8 @@ def global_transform(sample: Sample, rot_rad: float, scale: float, flip_y: bool)
     if boxes.shape[1] >= 9:
         boxes[:, 7:9] = boxes[:, 7:9] @ A3[:2, :2].T
 
-    T_lidar_from_cam = A[None] @ _np64(sample.T_lidar_from_cam)
-    T_global_from_lidar = _np64(sample.T_global_from_lidar) @ np.linalg.inv(A)
+    T_lidar_from_cam = A[None] @ sample.T_lidar_from_cam.astype(np.float64)
+    T_global_from_lidar = sample.T_global_from_lidar.astype(np.float64) @ np.linalg.inv(A)
     return replace(
         sample,
         points=_like(pts, sample.points),
@@ -116,20 +110,19 @@ def crop_to_range(sample: Sample, point_range: tuple[float, ...]) -> Sample:
     does; a rotation or scale can move them out of the grid.
     """
     lo, hi = np.asarray(point_range[:3]), np.asarray(point_range[3:])
-    pts, boxes = sample.points.cpu().numpy(), sample.gt_boxes.cpu().numpy()
-    keep_p = torch.from_numpy(((pts[:, :3] >= lo) & (pts[:, :3] < hi)).all(axis=1)).to(sample.points.device)
-    keep_b = torch.from_numpy(((boxes[:, :3] >= lo) & (boxes[:, :3] < hi)).all(axis=1)).to(sample.gt_boxes.device)
-    pasted = None if sample.pasted is None else sample.pasted[keep_p.to(sample.pasted.device)]
+    keep_p = ((sample.points[:, :3] >= lo) & (sample.points[:, :3] < hi)).all(axis=1)
+    keep_b = ((sample.gt_boxes[:, :3] >= lo) & (sample.gt_boxes[:, :3] < hi)).all(axis=1)
+    pasted = None if sample.pasted is None else sample.pasted[keep_p]
     return replace(sample, points=sample.points[keep_p], gt_boxes=sample.gt_boxes[keep_b],
-                   gt_labels=sample.gt_labels[keep_b.to(sample.gt_labels.device)], pasted=pasted)
+                   gt_labels=sample.gt_labels[keep_b], pasted=pasted)
 
 
 def shuffle_points(sample: Sample, rng: np.random.Generator) -> Sample:
     """The points (and their ``pasted`` flags) in a random order. The loader lists the key sweep
     first; the voxelizer's ``max_voxels`` cap keeps voxels by their first point's input order,
     so without a shuffle the oldest sweep would always be the first to lose voxels."""
-    perm = torch.from_numpy(rng.permutation(len(sample.points))).to(sample.points.device)
-    pasted = None if sample.pasted is None else sample.pasted[perm.to(sample.pasted.device)]
+    perm = rng.permutation(len(sample.points))
+    pasted = None if sample.pasted is None else sample.pasted[perm]
     return replace(sample, points=sample.points[perm], pasted=pasted)
 
 
@@ -182,8 +175,8 @@ def image_transform(
     content and its projected geometry move together. ``intrinsics`` stays the original K.
     """
     M = image_matrix(resize, crop, out_size, flip)
-    images = warp_images(sample.images.detach().cpu().numpy(), M, out_size)
-    img_aug = M[None] @ _np64(sample.img_aug)
+    images = warp_images(sample.images, M, out_size)
+    img_aug = M[None] @ sample.img_aug.astype(np.float64)
     return replace(sample, images=_like(images, sample.images), img_aug=_like(img_aug, sample.img_aug))
 
 

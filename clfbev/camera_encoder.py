@@ -28,13 +28,34 @@ Conventions
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from clfbev.ops.voxelize import grid_shape_of
 from clfbev.resnet import FPN, ResNet
+from clfbev.settings import grid_shape_of
+
+
+class CameraGeometry(NamedTuple):
+    """Where the camera feature cells look: what lift-splat lifts with and the depth target
+    projects the lidar with.
+
+    intrinsics : (B, N, 3, 3) K of the ORIGINAL images (before ``img_aug``).
+    T_lidar_from_cam : (B, N, 4, 4) camera -> lidar frame.
+    img_aug : (B, N, 3, 3) original -> augmented pixels, or None for identity.
+    image_size : (H, W) of the augmented image the network sees.
+    feature_stride : s, the feature map's stride; H and W are multiples of it.
+    depth_bins : (d_min, d_max, d_step) of camera z, see :func:`depth_bin_centres`.
+    """
+
+    intrinsics: Tensor
+    T_lidar_from_cam: Tensor
+    img_aug: Tensor | None
+    image_size: tuple[int, int]
+    feature_stride: int
+    depth_bins: tuple[float, float, float]
 
 
 def depth_bin_centres(depth_bins: tuple[float, float, float]) -> Tensor:
@@ -46,29 +67,15 @@ def depth_bin_centres(depth_bins: tuple[float, float, float]) -> Tensor:
     return d_min + d_step * (torch.arange(n, dtype=torch.float32) + 0.5)
 
 
-def lift_geometry(
-    intrinsics: Tensor,
-    T_lidar_from_cam: Tensor,
-    img_aug: Tensor | None,
-    image_size: tuple[int, int],
-    feature_stride: int,
-    depth_bins: tuple[float, float, float],
-) -> Tensor:
-    """Lidar-frame position of every frustum point.
-
-    Parameters
-    ----------
-    intrinsics : (B, N, 3, 3) K of the ORIGINAL images (before ``img_aug``).
-    T_lidar_from_cam : (B, N, 4, 4) camera -> lidar frame.
-    img_aug : (B, N, 3, 3) original -> augmented pixels, or None for identity.
-    image_size : (H, W) of the augmented image the network sees.
-    feature_stride : the feature map's stride; H and W must be multiples of it.
-    depth_bins : (d_min, d_max, d_step), see :func:`depth_bin_centres`.
+def lift_geometry(cams: CameraGeometry) -> Tensor:
+    """Lidar-frame position of every frustum point of the cameras ``cams``.
 
     Returns
     -------
     (B, N, D, h, w, 3) float32 lidar-frame xyz, h = H / stride, w = W / stride.
     """
+    intrinsics, T_lidar_from_cam, img_aug = cams.intrinsics, cams.T_lidar_from_cam, cams.img_aug
+    image_size, feature_stride, depth_bins = cams.image_size, cams.feature_stride, cams.depth_bins
     H, W = image_size
     s = feature_stride
     if H % s or W % s:
@@ -112,9 +119,7 @@ def splat(
     Huang 2022): voxel v gets ``sum over the points p in v of depth_probs[p] * context[cell(p)]``,
     a weighted sum of context rows, which ``F.embedding_bag`` computes per voxel (a bag) with
     ``per_sample_weights``, and differentiates in both. Points outside ``pc_range`` are dropped.
-    Measured on the tiny model's shapes (B = 2, 6 cameras, 51 bins, 24 x 44 cells, 32 channels,
-    one thread): forward + backward about 1.9x faster than an ``index_add`` of the outer
-    product, and none of its 80 MB.
+    It saves the memory of the outer product and the time of an ``index_add`` over it.
 
     Parameters
     ----------
@@ -177,7 +182,7 @@ class CameraEncoder(nn.Module):
     pc_range : (xmin, ymin, zmin, xmax, ymax, zmax) of the voxel grid, lidar frame.
     bev_voxel : (dx, dy, dz) voxel size.
     semantic_classes : when > 0, a 1x1 conv on the FPN features also predicts that many class
-        logits per feature cell, for the perspective supervision (:mod:`clfbev.perspective`).
+        logits per feature cell, for the perspective supervision (:mod:`clfbev.supervision.perspective`).
     semantic_lift : lift the class probabilities (sigmoid of those logits) with the context, as
         ``semantic_classes`` more channels per z slice, so that the camera BEV says what stands
         where and not only that something does (SA-BEV, Zhang et al. 2023, lifts image
@@ -243,20 +248,25 @@ class CameraEncoder(nn.Module):
         """(ny, nx) of the camera BEV."""
         return self.grid_shape[1], self.grid_shape[2]
 
+    def fpn_features(self, images: Tensor) -> Tensor:
+        """images (B, N, 3, H, W) -> FPN features (B * N, fpn_ch, H / stride, W / stride): what the
+        depth net and the heads of the image-view pretraining (:mod:`clfbev.run.pretrain`) read."""
+        H, W = images.shape[-2:]
+        if (H, W) != self.image_size:
+            raise ValueError(f"CameraEncoder built for image_size {self.image_size}, got {(H, W)}")
+        # Channels-last: the CPU's oneDNN convolutions and cuDNN under AMP are faster in it.
+        feats = self.backbone(images.flatten(0, 1).contiguous(memory_format=torch.channels_last))
+        return self.neck(feats[self._levels])
+
     def image_features(self, images: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
         """images (B, N, 3, H, W) -> depth_probs (B, N, D, h, w), context (B, N, C, h, w) and the
         class logits (B, N, semantic_classes, h, w), or None without a semantic head.
 
         Exposed separately so a caller can supervise the depth distribution (BEVDepth-style) and
-        the classes (:mod:`clfbev.perspective`).
+        the classes (:mod:`clfbev.supervision.perspective`).
         """
         B, N, _, H, W = images.shape
-        if (H, W) != self.image_size:
-            raise ValueError(f"CameraEncoder built for image_size {self.image_size}, got {(H, W)}")
-        # Channels-last: the CPU's oneDNN convolutions run about 1.35x faster in it (forward +
-        # backward of the tiny ResNet, measured), and cuDNN prefers it under AMP.
-        feats = self.backbone(images.flatten(0, 1).contiguous(memory_format=torch.channels_last))
-        fpn = self.neck(feats[self._levels])
+        fpn = self.fpn_features(images)
         x = self.depth_net(fpn).contiguous()
         h, w = H // self.feature_stride, W // self.feature_stride
         D = self.num_depth_bins
@@ -303,7 +313,6 @@ class CameraEncoder(nn.Module):
         depth, context, semantics = self.image_features(images)
         if self.semantic_lift:
             context = torch.cat([context, semantics.sigmoid()], dim=2)           # (B, N, C + n_cls, h, w)
-        geom = lift_geometry(
-            intrinsics, T_lidar_from_cam, img_aug, self.image_size, self.feature_stride, self.depth_bins
-        )
+        geom = lift_geometry(CameraGeometry(intrinsics, T_lidar_from_cam, img_aug, self.image_size,
+                                            self.feature_stride, self.depth_bins))
         return compress_z(splat(depth, context, geom, self.pc_range, self.bev_voxel)), depth, semantics

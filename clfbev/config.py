@@ -1,9 +1,11 @@
 """One frozen config for the CL-FusionBEV model (nanoGPT style), its presets and YAML overrides.
 
 Only independent choices are fields. Every size that follows from them (voxel grid, lidar and
-camera BEV shapes and channels, anchors per cell) is a property computed from the fields, using
-the encoders' own size functions, so it is never typed twice and cannot disagree with the
-modules that ``clfbev.model`` builds.
+camera BEV shapes and channels, anchors per cell) is a property computed from the fields by the
+arithmetic of the encoders' convolutions (:func:`sparse_out_grid`), so it is never typed twice;
+the tests build the modules and check that they agree.
+
+A leaf of the package: it imports only :mod:`clfbev.settings` and :mod:`clfbev.errors`.
 
 The camera BEV voxel is derived too: its x/y size is chosen so that the camera BEV has exactly
 the (ny, nx) of the lidar BEV (the fusion concatenates them cell by cell), and it spans the
@@ -18,22 +20,12 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from functools import cached_property
 from pathlib import Path
 
-import torch
+from clfbev.errors import ConfigError
+from clfbev.settings import (ANCHOR_ROTATIONS, ANCHOR_SIZES, ATTENTION_MODES, DETECTION_CLASSES, LIDAR_SWEEP_PERIOD_S,
+                             POINT_CH, DataConfig, LossWeights, conv_out_size, grid_shape_of)
 
-from clfbev.anchors import ANCHOR_ROTATIONS, ANCHOR_SIZES
-from clfbev.attention import MODES
-from clfbev.data import DETECTION_CLASSES, DataConfig
-from clfbev.lidar_encoder import SparseEncoder
-from clfbev.losses import LossWeights
-from clfbev.ops.voxelize import grid_shape_of
-
-# Points reach the model as x, y, z, intensity, time lag (clfbev.data); not a free choice.
-POINT_CH = 5
-# The lidar turns at 20 Hz (nuScenes and the HDL-32E alike): consecutive sweeps are 0.05 s apart.
-LIDAR_SWEEP_PERIOD_S = 0.05
 VARIANTS = ("lidar", "camera", "concat", "mcm", "full")
 
 
@@ -52,7 +44,7 @@ class ModelConfig:
     Camera: ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``, ``context_ch``, ``depth_bins``
     (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``,
     ``cam_semantic_lift`` (lift the perspective head's class probabilities with the context, so
-    the camera BEV carries them; needs ``loss.semantic > 0``, see :mod:`clfbev.perspective`).
+    the camera BEV carries them; needs ``loss.semantic > 0``, see :mod:`clfbev.supervision.perspective`).
     Fusion: ``fusion_dim`` (ConvFuser / MCM / BSM channels), ``attn_heads``, ``attn_mode``
     (exact | window | pooled), ``attn_window``, ``attn_pool_stride``, ``attn_query_chunk``,
     ``attn_ffn_ratio``.
@@ -61,7 +53,13 @@ class ModelConfig:
     Head / decoding: ``anchor_rotations``, ``code_size``, ``n_dir_bins``, ``prior_prob``,
     ``velocity_tower`` (0: the velocity is two of the head's 1x1 residuals; else the width of
     the :class:`clfbev.head.VelocityTower` that predicts it from the BEV and the sweep bands),
-    ``score_thr``, ``nms_iou``, ``max_per_sample``, ``pre_nms``. Loss: ``loss``.
+    ``heading_from_motion`` (m/s, >= 0: decoding turns a box's yaw by pi where it points against
+    its predicted velocity and the predicted speed is above this; 0: off), ``score_thr``,
+    ``nms_iou``, ``max_per_sample``, ``pre_nms``.
+    Loss: ``loss``; ``velocity_balance`` (the velocity residuals leave the shared box loss for
+    their own, in which the moving and the still positives weigh the same in total,
+    :func:`clfbev.supervision.losses.velocity_loss`), ``velocity_beta`` (its Smooth-L1 beta in
+    m/s, >= 0) and ``velocity_weight`` (its weight beside ``loss.reg``, >= 0).
     """
 
     class_names: tuple[str, ...] = DETECTION_CLASSES
@@ -103,31 +101,51 @@ class ModelConfig:
     n_dir_bins: int = 2
     prior_prob: float = 0.01
     velocity_tower: int = 0
+    heading_from_motion: float = 0.0
     score_thr: float = 0.1
     nms_iou: float = 0.2
     max_per_sample: int = 500
     pre_nms: int = 1000
     loss: LossWeights = field(default_factory=LossWeights)
+    velocity_balance: bool = False
+    velocity_beta: float = 1.0
+    velocity_weight: float = 0.2
 
     def __post_init__(self) -> None:
         # Cheap checks with a clear message; the modules check the rest when they are built.
         unknown = [c for c in self.class_names if c not in ANCHOR_SIZES]
         if not self.class_names or unknown:
-            raise ValueError(f"class_names {unknown or '()'} have no anchors; known: {sorted(ANCHOR_SIZES)}")
+            raise ConfigError(f"class_names {unknown or '()'} have no anchors; known: {sorted(ANCHOR_SIZES)}")
         if len(self.pc_range) != 6 or len(self.voxel_size) != 3 or len(self.image_size) != 2:
-            raise ValueError("pc_range needs 6 values, voxel_size 3 and image_size 2")
-        if self.attn_mode not in MODES:
-            raise ValueError(f"attn_mode must be one of {MODES}, got {self.attn_mode!r}")
+            raise ConfigError("pc_range needs 6 values, voxel_size 3 and image_size 2")
+        if not all(lo < hi for lo, hi in zip(self.pc_range[:3], self.pc_range[3:])):
+            raise ConfigError(f"pc_range {self.pc_range} must have min < max on every axis")
+        positive = {"voxel_size": self.voxel_size, "image_size": self.image_size, "depth_bins": self.depth_bins,
+                    "sparse_channels": self.sparse_channels, "bev_channels": self.bev_channels,
+                    "n_sweeps": (self.n_sweeps,), "cam_z_slabs": (self.cam_z_slabs,)}
+        for name, values in positive.items():
+            if not all(v > 0 for v in values):
+                raise ConfigError(f"{name} must be > 0, got {values}")
+        non_negative = {"heading_from_motion": self.heading_from_motion, "velocity_beta": self.velocity_beta,
+                        "velocity_weight": self.velocity_weight}
+        for name, value in non_negative.items():
+            if not value >= 0:
+                raise ConfigError(f"{name} must be >= 0, got {value}")
+        if self.attn_mode not in ATTENTION_MODES:
+            raise ConfigError(f"attn_mode must be one of {ATTENTION_MODES}, got {self.attn_mode!r}")
         if self.fusion_dim % self.attn_heads or self.fusion_dim % 4:
-            raise ValueError(f"fusion_dim {self.fusion_dim} must be divisible by attn_heads {self.attn_heads} and 4")
+            raise ConfigError(f"fusion_dim {self.fusion_dim} must be divisible by attn_heads {self.attn_heads} and 4")
         if self.feature_stride not in (8, 16) or any(s % self.feature_stride for s in self.image_size):
-            raise ValueError(f"image_size {self.image_size} must be a multiple of feature_stride (8 or 16)")
+            raise ConfigError(f"image_size {self.image_size} must be a multiple of feature_stride (8 or 16)")
         if self.cam_semantic_lift and not self.loss.semantic > 0:
-            raise ValueError("cam_semantic_lift needs the perspective head: set loss.semantic > 0")
+            raise ConfigError("cam_semantic_lift needs the perspective head: set loss.semantic > 0")
         if len(self.loss.code_weights) < self.code_size:
-            raise ValueError(f"loss.code_weights needs {self.code_size} values")
+            raise ConfigError(f"loss.code_weights needs {self.code_size} values")
+        if min(self._sparse_grid) < 1:
+            raise ConfigError(f"the voxel grid {self.lidar_grid_shape} is too small for {len(self.sparse_channels)} "
+                              f"sparse stages (last grid {self._sparse_grid})")
         if self.cam_bev_shape != self.lidar_bev_shape:
-            raise ValueError(f"camera BEV {self.cam_bev_shape} != lidar BEV {self.lidar_bev_shape}")
+            raise ConfigError(f"camera BEV {self.cam_bev_shape} != lidar BEV {self.lidar_bev_shape}")
 
     # ------------------------------------------------------------------ derived sizes
 
@@ -145,23 +163,20 @@ class ModelConfig:
         """(nz, ny, nx) of the lidar voxel grid."""
         return grid_shape_of(self.pc_range, self.voxel_size)
 
-    @cached_property
-    def _sparse_out(self) -> tuple[tuple[int, int], int]:
-        # The encoder's own size arithmetic, on the meta device: no memory, no init cost.
-        with torch.device("meta"):
-            enc = SparseEncoder(self.vfe_ch, self.sparse_channels, self.lidar_grid_shape, self.sparse_blocks,
-                                xy_stride=self.lidar_bev_stride)
-        return enc.out_size(), enc.out_channels
+    @property
+    def _sparse_grid(self) -> tuple[int, int, int]:
+        """(nz, ny, nx) of the sparse encoder's last grid."""
+        return sparse_out_grid(self.lidar_grid_shape, len(self.sparse_channels), self.lidar_bev_stride)
 
     @property
     def lidar_bev_shape(self) -> tuple[int, int]:
         """(ny, nx) of the lidar BEV (after the sparse encoder's downsamplings)."""
-        return self._sparse_out[0]
+        return self._sparse_grid[1:]
 
     @property
     def lidar_bev_channels(self) -> int:
         """Lidar BEV channels: last sparse stage channels x remaining z cells, and the sweep bands."""
-        return self._sparse_out[1] + self.sweep_bands
+        return self.sparse_channels[-1] * self._sparse_grid[0] + self.sweep_bands
 
     @property
     def cam_bev_voxel(self) -> tuple[float, float, float]:
@@ -195,7 +210,7 @@ class ModelConfig:
             return self.cam_bev_channels
         if variant in VARIANTS:
             return self.fused_channels
-        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+        raise ConfigError(f"variant must be one of {VARIANTS}, got {variant!r}")
 
     @property
     def head_in_channels(self) -> int:
@@ -222,6 +237,20 @@ class ModelConfig:
         return _plain(dataclasses.asdict(self))
 
 
+def sparse_out_grid(grid_shape: tuple[int, int, int], n_stages: int, xy_stride: int) -> tuple[int, int, int]:
+    """(nz, ny, nx) of the last grid of :class:`clfbev.lidar_encoder.SparseEncoder` with
+    ``n_stages`` stages, the z_out conv and ``xy_stride``: each of the ``n_stages - 1``
+    downsamplings is a k 3, stride 2, padding 1 conv along z, and along x and y too while the
+    stride reached stays within ``xy_stride`` (else k 1, stride 1, padding 0 there); the z_out
+    conv is k 3, stride 2, padding 0 along z."""
+    nz, ny, nx = grid_shape
+    for i in range(1, n_stages):
+        nz = conv_out_size(nz, 3, 2, 1)
+        if 2**i <= xy_stride:
+            ny, nx = conv_out_size(ny, 3, 2, 1), conv_out_size(nx, 3, 2, 1)
+    return conv_out_size(nz, 3, 2, 0), ny, nx
+
+
 def _plain(x):
     if isinstance(x, dict):
         return {k: _plain(v) for k, v in x.items()}
@@ -237,8 +266,7 @@ def tiny() -> ModelConfig:
     """For a 2-core CPU: +-51.2 m, 0.4 m voxels -> 256 x 256 x 20 grid; the second sparse
     downsampling halves z only, so the BEV is 128 x 128 (0.8 m cells, 64 channels), the grid
     on which anchor heads are known to work (SECOND / OpenPCDet use 0.8 m or finer; at 1.6 m a
-    pedestrian or a cone often had no anchor to match). A finer voxel would give the same grid
-    at 2.4 times the step time. ResNet-18 width 16 on 192 x 352 images (704 x 396 resized
+    pedestrian or a cone often had no anchor to match). ResNet-18 width 16 on 192 x 352 images (704 x 396 resized
     keeping the aspect, then cropped) at stride 8; 51 depth bins of 1 m from 1 m (6 m bins
     left rings of BEV cells that no camera feature reached); 8 x 8 window attention (exact
     attention over 16,384 cells would be the slowest part by far). 10 lidar sweeps (0.45 s,
@@ -246,8 +274,7 @@ def tiny() -> ModelConfig:
     the newest sweep, one BEV cell (the benchmark's models predict no velocity with 3 sweeps or
     with 10, docs/benchmarks.md); the point counts of 5 lag bands (two sweeps each) per BEV
     cell join the lidar BEV, where the backbone can compare the old and the new sweeps' places
-    (:mod:`clfbev.sweep_bev`). One training step of 'full' costs about 1.5 CPU seconds per
-    sample (docs/benchmarks.md)."""
+    (:mod:`clfbev.sweep_bev`)."""
     return ModelConfig(n_sweeps=10, sweep_bands=5)
 
 
@@ -297,33 +324,41 @@ def load_config(name_or_path: str | Path) -> ModelConfig:
 
     The YAML file is a mapping of field names to values; the optional key ``preset`` names the
     preset it overrides (default 'tiny'; no chains of files). ``loss`` takes a mapping of
-    :class:`LossWeights` fields. Lists become tuples. An unknown key, a wrong type or a value
-    the config rejects raises one ``ValueError`` naming the file and the key.
+    :class:`LossWeights` fields. Lists become tuples. A file that is missing or not YAML, an
+    unknown key, a wrong type, a non-finite number or a value the config rejects raises one
+    :class:`ConfigError` naming the file and the key.
     """
     if str(name_or_path) in PRESETS:
         return PRESETS[str(name_or_path)]()
+    path = Path(name_or_path)
+    return config_from_dict(_read_yaml(path), path)
+
+
+def _read_yaml(path: Path):
+    """The parsed YAML of ``path``; a one-line :class:`ConfigError` if it cannot be read or parsed."""
     import yaml
 
-    path = Path(name_or_path)
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        return yaml.safe_load(path.read_text()) or {}
     except FileNotFoundError:
-        raise ValueError(f"{path}: no such file, and not a preset ({', '.join(PRESETS)})") from None
+        raise ConfigError(f"{path}: no such file, and not a preset ({', '.join(PRESETS)})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: cannot read the config file ({e})") from None
     except yaml.YAMLError as e:
-        raise ValueError(f"{path}: not valid YAML: {e}") from None
-    return config_from_dict(data, path)
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(e, "problem", None) or type(e).__name__
+        raise ConfigError(f"{path}: not valid YAML{where}: {problem}") from None
 
 
 def preset_of(name_or_path: str | Path) -> str:
     """The preset a config name or YAML file builds on ('tiny' unless the file says otherwise);
-    it also picks the training recipe (:func:`clfbev.train.recipe`)."""
+    it also picks the training recipe."""
     if str(name_or_path) in PRESETS:
         return str(name_or_path)
-    import yaml
-
     try:
-        data = yaml.safe_load(Path(name_or_path).read_text()) or {}
-    except (OSError, yaml.YAMLError):
+        data = _read_yaml(Path(name_or_path))
+    except ConfigError:
         return "tiny"  # load_config reports the file's problem with its own message
     return data.get("preset", "tiny") if isinstance(data, dict) else "tiny"
 
@@ -333,45 +368,46 @@ def config_from_dict(data, source: str | Path = "<config>") -> ModelConfig:
     as a checkpoint stores it), validated like a YAML file; errors name ``source``."""
     path = source
     if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping of config keys, got {type(data).__name__}")
+        raise ConfigError(f"{path}: expected a mapping of config keys, got {type(data).__name__}")
     data = dict(data)
     preset = data.pop("preset", "tiny")
     if preset not in PRESETS:
-        raise ValueError(f"{path}: key 'preset' must be one of {list(PRESETS)}, got {preset!r}")
+        raise ConfigError(f"{path}: key 'preset' must be one of {list(PRESETS)}, got {preset!r}")
     base = PRESETS[preset]()
     overrides = {}
     for key, value in data.items():
         if key == "loss":
             if not isinstance(value, dict):
-                raise ValueError(f"{path}: key 'loss' must be a mapping of LossWeights fields")
-            loss = {f"loss.{k}": v for k, v in value.items()}
-            checked = {k.split(".", 1)[1]: _check(path, k, v, base.loss, k.split(".", 1)[1]) for k, v in loss.items()}
+                raise ConfigError(f"{path}: key 'loss' must be a mapping of LossWeights fields")
+            checked = {k: _check(path, f"loss.{k}", v, base.loss, k) for k, v in value.items()}
             overrides["loss"] = dataclasses.replace(base.loss, **checked)
         else:
             overrides[key] = _check(path, key, value, base, key)
     try:
         return dataclasses.replace(base, **overrides)
-    except ValueError as e:
-        raise ValueError(f"{path}: {e}") from None
+    except (ConfigError, ValueError) as e:      # ValueError: the grid arithmetic of clfbev.settings
+        raise ConfigError(f"{path}: {e}") from None
 
 
 def _check(path: Path, key: str, value, base, name: str):
     """The override ``value`` of field ``name`` of ``base``, type-checked against its default."""
     names = {f.name for f in dataclasses.fields(base)}
-    if name not in names:
-        raise ValueError(f"{path}: unknown key '{key}' (allowed: {', '.join(sorted(names))})")
+    if not isinstance(name, str) or name not in names:
+        raise ConfigError(f"{path}: unknown key '{key}' (allowed: {', '.join(sorted(names))})")
     default = getattr(base, name)
     if isinstance(default, tuple):
         if not isinstance(value, (list, tuple)) or not all(_same_kind(v, default[0]) for v in value if default):
-            raise ValueError(f"{path}: key '{key}' must be a list like {list(default)}, got {value!r}")
+            raise ConfigError(f"{path}: key '{key}' must be a list of finite values like {list(default)}, "
+                              f"got {value!r}")
         return tuple(float(v) if isinstance(v, int) and default and isinstance(default[0], float) else v
                      for v in value)
     if default is None or name == "attn_query_chunk":
         if value is not None and not (isinstance(value, int) and not isinstance(value, bool)):
-            raise ValueError(f"{path}: key '{key}' must be an integer or null, got {value!r}")
+            raise ConfigError(f"{path}: key '{key}' must be an integer or null, got {value!r}")
         return value
     if not _same_kind(value, default):
-        raise ValueError(f"{path}: key '{key}' must be a {type(default).__name__}, got {value!r}")
+        kind = "finite number" if isinstance(default, float) else type(default).__name__
+        raise ConfigError(f"{path}: key '{key}' must be a {kind}, got {value!r}")
     return float(value) if isinstance(default, float) else value
 
 

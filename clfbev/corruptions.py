@@ -18,7 +18,8 @@ extrinsic_noise    0-10       T_lidar_from_cam perturbed: rotation noise sigma =
                               axis, translation noise sigma = 0.02 * severity m per axis
 =================  =========  ==================================================================
 
-Zeros are the "sensor missing" input that BEVFusion's robustness study feeds (REFERENCE.md).
+Zeros are the "sensor missing" input that BEVFusion's robustness study feeds (Liang et al.,
+"BEVFusion: A Simple and Robust LiDAR-Camera Fusion Framework", NeurIPS 2022).
 """
 from __future__ import annotations
 

@@ -15,103 +15,73 @@ Frames and conventions
   ``img_aug`` maps original pixels to the pixels of the image the network sees. Here that is a
   resize keeping the aspect ratio to the network width, then a crop of the top rows (sky) to
   the network height: ``A = [[s, 0, 0], [0, s', -top], [0, 0, 1]]`` with ``s = W'/W`` and
-  ``s' = round(s H) / H`` (within 0.3% of s), exact in this convention. Squeezing the height
-  instead (the old 704x396 -> 352x128) shrank objects vertically 1.6 times more than
-  horizontally: a pedestrian at 20 m was two feature rows. So a lidar point projects to
-  ``[u', v', 1] ~ img_aug @ intrinsics @ T_cam_from_lidar @ p`` (``A K`` is the K of the resized
-  image). The camera encoder composes ``img_aug @ intrinsics`` itself, so K is not pre-scaled.
+  ``s' = round(s H) / H`` (within 0.3% of s), exact in this convention; objects keep their
+  aspect ratio. So a lidar point projects to ``[u', v', 1] ~ img_aug @ intrinsics @
+  T_cam_from_lidar @ p`` (``A K`` is the K of the resized image). The camera encoder composes ``img_aug @ intrinsics`` itself, so K is not pre-scaled.
 - Boxes are ``(x, y, z, l, w, h, yaw)`` (+ ``vx, vy``) as in :mod:`clfbev.ops.boxes`;
   :func:`box_to_lidar` and :func:`box_lidar_to_global` are the only crossings to the nuScenes
   global ``translation, size (w, l, h), rotation (w, x, y, z)`` form.
+- A record that lacks a field the loader reads, or holds a non-finite number there, and a sensor
+  file that is missing, truncated or undecodable raise a one-line :class:`DataError` naming the
+  file (and the record and field).
 """
 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 from pyquaternion import Quaternion
 from torch import Tensor
 
+from clfbev import corruptions
+from clfbev.errors import DataError
+from clfbev.sensor_files import IMAGE_MEAN, IMAGE_STD, load_image, load_points, resize_and_crop
+from clfbev.settings import DETECTION_CLASSES, DataConfig
+
 CAMERAS = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
 LIDAR = "LIDAR_TOP"
-DETECTION_CLASSES = (
-    "car", "truck", "construction_vehicle", "bus", "trailer",
-    "barrier", "motorcycle", "bicycle", "pedestrian", "traffic_cone",
-)
-# ImageNet statistics (RGB, on [0, 1]): what a ResNet backbone is usually initialised for.
-IMAGE_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
-IMAGE_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
 ALL_SCENES = "all"       # the pseudo split of every scene in a version
-POINT_BYTES = 5 * 4     # a .pcd.bin point: x, y, z, intensity, ring as float32
-
-
-class DataError(ValueError):
-    """Unusable input data: the message is one line naming the file or split."""
-
-
-@dataclass(frozen=True)
-class DataConfig:
-    """What the loader produces.
-
-    class_names : detection classes, in label order (label = index).
-    image_size : (H, W) of the images the network sees (resized to W keeping the aspect
-        ratio, then cropped or padded at the top to H; see :func:`resize_and_crop`).
-    n_sweeps : lidar sweeps per sample: the key frame plus n_sweeps - 1 previous sweeps.
-    point_range : (xmin, ymin, zmin, xmax, ymax, zmax), key-frame lidar frame; points outside
-        and boxes whose centre lies outside are dropped (min <= p < max).
-    min_points : boxes with fewer lidar points are dropped. The devkit's DetectionEval drops
-        GT boxes without lidar (and radar) points too, so 0-point boxes are never evaluated.
-    """
-
-    class_names: tuple[str, ...] = DETECTION_CLASSES
-    image_size: tuple[int, int] = (192, 352)
-    n_sweeps: int = 3
-    point_range: tuple[float, ...] = (-51.2, -51.2, -5.0, 51.2, 51.2, 3.0)
-    min_points: int = 1
-
-    def __post_init__(self):
-        if self.n_sweeps < 1:
-            raise ValueError(f"n_sweeps must be >= 1, got {self.n_sweeps}")
-        if len(self.point_range) != 6 or len(self.image_size) != 2:
-            raise ValueError(f"point_range needs 6 values and image_size 2, got {self.point_range}, {self.image_size}")
 
 
 @dataclass
 class Sample:
-    """One key frame, N = 6 cameras in ``CAMERAS`` order, all geometry in its lidar frame.
+    """One key frame, N = 6 cameras in ``CAMERAS`` order, all geometry in its lidar frame; numpy
+    arrays until :func:`collate` makes the torch :class:`Batch`.
 
     images : (N, 3, H, W) float32, RGB normalised with ``IMAGE_MEAN`` / ``IMAGE_STD``.
     intrinsics : (N, 3, 3) float32 K of the original images.
     T_lidar_from_cam : (N, 4, 4) float32 camera -> key-frame lidar.
     img_aug : (N, 3, 3) float32 original -> network-image pixels.
     points : (n, 5) float32 x, y, z (m), intensity / 255, time lag (s, 0 = key frame).
-    gt_boxes : (M, 9) float32 x, y, z, l, w, h, yaw, vx, vy (m/s, lidar axes).
+    gt_boxes : (M, 9) float32 x, y, z, l, w, h, yaw, vx, vy (m/s, lidar axes); vx, vy NaN where
+        the velocity is unknown (see :func:`velocity_or_still`).
     gt_labels : (M,) int64 index into ``DataConfig.class_names``.
     T_global_from_lidar : (4, 4) float64, to send predictions back to nuScenes global form.
     sample_token : the nuScenes sample token.
     pasted : (n,) bool, True for points GT-paste added (no pixel shows them), or None.
     """
 
-    images: Tensor
-    intrinsics: Tensor
-    T_lidar_from_cam: Tensor
-    img_aug: Tensor
-    points: Tensor
-    gt_boxes: Tensor
-    gt_labels: Tensor
-    T_global_from_lidar: Tensor
+    images: np.ndarray
+    intrinsics: np.ndarray
+    T_lidar_from_cam: np.ndarray
+    img_aug: np.ndarray
+    points: np.ndarray
+    gt_boxes: np.ndarray
+    gt_labels: np.ndarray
+    T_global_from_lidar: np.ndarray
     sample_token: str
-    pasted: Tensor | None = None
+    pasted: np.ndarray | None = None
 
 
 @dataclass
 class Batch:
-    """B samples. Shapes as in :class:`Sample` with a leading B; ragged data stay lists.
+    """B samples as torch tensors. Shapes as in :class:`Sample` with a leading B; ragged data
+    stay lists.
 
     images : (B, N, 3, H, W) float32.  intrinsics : (B, N, 3, 3).  T_lidar_from_cam : (B, N, 4, 4).
     img_aug : (B, N, 3, 3).  T_global_from_lidar : (B, 4, 4) float64.
@@ -146,23 +116,42 @@ class Batch:
         )
 
 
+def _tensor(a: np.ndarray) -> Tensor:
+    """``a`` as a tensor sharing its memory (a copy when numpy marks it read-only)."""
+    return torch.from_numpy(a if a.flags.writeable else a.copy())
+
+
 def collate(samples: list[Sample]) -> Batch:
-    """Stack fixed-size fields, keep points and boxes as per-sample lists."""
+    """numpy Samples -> the torch Batch: fixed-size fields stacked, points and boxes per-sample lists."""
     return Batch(
-        images=torch.stack([s.images for s in samples]),
-        intrinsics=torch.stack([s.intrinsics for s in samples]),
-        T_lidar_from_cam=torch.stack([s.T_lidar_from_cam for s in samples]),
-        img_aug=torch.stack([s.img_aug for s in samples]),
-        points=[s.points for s in samples],
-        gt_boxes=[s.gt_boxes for s in samples],
-        gt_labels=[s.gt_labels for s in samples],
-        T_global_from_lidar=torch.stack([s.T_global_from_lidar for s in samples]),
+        images=_tensor(np.stack([s.images for s in samples])),
+        intrinsics=_tensor(np.stack([s.intrinsics for s in samples])),
+        T_lidar_from_cam=_tensor(np.stack([s.T_lidar_from_cam for s in samples])),
+        img_aug=_tensor(np.stack([s.img_aug for s in samples])),
+        points=[_tensor(s.points) for s in samples],
+        gt_boxes=[_tensor(s.gt_boxes) for s in samples],
+        gt_labels=[_tensor(s.gt_labels) for s in samples],
+        T_global_from_lidar=_tensor(np.stack([s.T_global_from_lidar for s in samples])),
         sample_tokens=[s.sample_token for s in samples],
-        pasted=[s.pasted for s in samples],
+        pasted=[None if s.pasted is None else _tensor(s.pasted) for s in samples],
     )
 
 
 # ---------------------------------------------------------------- transforms and boxes
+
+def velocity_or_still(boxes: np.ndarray) -> np.ndarray:
+    """(M, 2) float64 the velocities (vx, vy) of ``boxes`` (M, 9), an unknown one as standing still.
+
+    The unknown-velocity contract: an annotation whose velocity the devkit cannot tell (NaN from
+    ``box_velocity``: no neighbour in time) keeps NaN in ``Sample.gt_boxes`` through every
+    augmentation and paste, and the velocity loss masks it
+    (:func:`clfbev.supervision.assign.assign_targets`), so no box is trained toward a speed it
+    was never measured at. Only geometry that must move a box with its object (which points
+    belong to it, where it was at an older sweep) reads it as 0, through this function; a
+    target never does.
+    """
+    return np.nan_to_num(np.asarray(boxes, dtype=np.float64)[..., 7:9], nan=0.0)
+
 
 def transform_from(translation, rotation_wxyz) -> np.ndarray:
     """(4, 4) float64 T_parent_from_child of a nuScenes record (translation, wxyz quaternion)."""
@@ -198,48 +187,7 @@ def box_lidar_to_global(box7, T_global_from_lidar: np.ndarray) -> tuple[np.ndarr
     return translation, np.array([w, l, h]), rotation
 
 
-# ---------------------------------------------------------------- files
-
-def load_points(path: Path) -> np.ndarray:
-    """(n, 5) float32 x, y, z, intensity, ring of a nuScenes ``.pcd.bin`` (sensor frame)."""
-    try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise DataError(f"cannot read lidar file {path}: {e.strerror}") from None
-    if len(raw) % POINT_BYTES:
-        raise DataError(f"corrupt lidar file {path}: {len(raw)} bytes is not a multiple of {POINT_BYTES}")
-    return np.frombuffer(raw, dtype=np.float32).reshape(-1, 5)
-
-
-def load_image(path: Path) -> np.ndarray:
-    """(H, W, 3) uint8 RGB of an image file."""
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)   # None for a missing or undecodable file
-    if img is None:
-        what = "missing" if not path.exists() else "unreadable"
-        raise DataError(f"{what} image file {path}")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-
-
-def resize_and_crop(rgb: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Resize (h0, w0, 3) uint8 to the width of ``size = (H, W)`` keeping the aspect ratio, then
-    crop the top rows to height H (or pad the top with black when the image is too short).
-
-    Returns the (H, W, 3) image and the (3, 3) float64 map from original to new pixels
-    (pixel-edge convention): ``u' = (W / w0) u``, ``v' = (h1 / h0) v - top``, with h1 the
-    resized height and ``top = h1 - H``. The bottom of the image (road, objects) is kept.
-    """
-    H, W = size
-    h0, w0 = rgb.shape[:2]
-    h1 = max(1, int(round(h0 * W / w0)))
-    # INTER_AREA averages when shrinking (no aliasing); cv2 maps pixel centres, which is the
-    # same map u' = s u in the pixel-edge convention.
-    interp = cv2.INTER_AREA if (h1 < h0 and W < w0) else cv2.INTER_LINEAR
-    resized = cv2.resize(rgb, (W, h1), interpolation=interp)
-    top = h1 - H
-    out = resized[top:] if top >= 0 else np.pad(resized, ((-top, 0), (0, 0), (0, 0)))
-    A = np.array([[W / w0, 0.0, 0.0], [0.0, h1 / h0, -top], [0.0, 0.0, 1.0]])
-    return np.ascontiguousarray(out), A
-
+# ---------------------------------------------------------------- splits and tables
 
 def split_scene_names(dataroot: Path, version: str, split: str) -> list[str]:
     """Scene names of an official split, else of a key of ``<dataroot>/<version>/splits.json``.
@@ -332,30 +280,30 @@ class NuScenesDetection(torch.utils.data.Dataset):
         images, K, T_lidar_from_cam, A = self._cameras(sample, T_lidar_from_global)
         points, rings = self._points(lidar_sd, T_lidar_from_global)
         if self.corruptions:
-            from clfbev import corruptions as C
-            calib = self.nusc.get("calibrated_sensor", lidar_sd["calibrated_sensor_token"])
-            forward_lidar = transform_from(calib["translation"], calib["rotation"])[:3, :3].T @ np.array([1.0, 0, 0])
-            points = C.corrupt_points(points, rings, forward_lidar, C.lidar_corruptions(self.corruptions), sample["token"])
-            images, T_lidar_from_cam = C.corrupt_cameras(images, T_lidar_from_cam, C.camera_corruptions(self.corruptions),
-                                                         sample["token"])
+            T_ego_from_lidar = self._T_parent_from(lidar_sd, "calibrated_sensor")
+            forward_lidar = T_ego_from_lidar[:3, :3].T @ np.array([1.0, 0, 0])
+            points = corruptions.corrupt_points(points, rings, forward_lidar,
+                                                corruptions.lidar_corruptions(self.corruptions), sample["token"])
+            images, T_lidar_from_cam = corruptions.corrupt_cameras(
+                images, T_lidar_from_cam, corruptions.camera_corruptions(self.corruptions), sample["token"])
         boxes, labels = self._boxes(sample, T_lidar_from_global)
         return Sample(
-            images=torch.from_numpy(images),
-            intrinsics=torch.from_numpy(K).float(),
-            T_lidar_from_cam=torch.from_numpy(T_lidar_from_cam).float(),
-            img_aug=torch.from_numpy(A).float(),
-            points=torch.from_numpy(points),
-            gt_boxes=torch.from_numpy(boxes),
-            gt_labels=torch.from_numpy(labels),
-            T_global_from_lidar=torch.from_numpy(T_global_from_lidar),
+            images=images,
+            intrinsics=K.astype(np.float32),
+            T_lidar_from_cam=T_lidar_from_cam.astype(np.float32),
+            img_aug=A.astype(np.float32),
+            points=points,
+            gt_boxes=boxes,
+            gt_labels=labels,
+            T_global_from_lidar=T_global_from_lidar,
             sample_token=sample["token"],
         )
 
     def lidar_and_boxes(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What sample ``index`` holds without its cameras (and uncorrupted): points (n, 5),
         gt_boxes (M, 9) and gt_labels (M,), as :meth:`__getitem__` gives them. For work that
-        needs no image (the GT-paste database), at a fraction of the cost: decoding the six
-        JPEGs is most of a sample's load time."""
+        needs no image (the GT-paste database): decoding the six JPEGs is most of a sample's
+        load time."""
         sample = self.nusc.get("sample", self.sample_tokens[index])
         lidar_sd = self.nusc.get("sample_data", sample["data"][LIDAR])
         T_lidar_from_global = np.linalg.inv(self._T_global_from_sensor(lidar_sd))
@@ -363,13 +311,39 @@ class NuScenesDetection(torch.utils.data.Dataset):
         boxes, labels = self._boxes(sample, T_lidar_from_global)
         return points, boxes, labels
 
+    # ------------------------------------------------------------ the tables' records, checked
+
+    def _field(self, table: str, record: dict, name: str):
+        """``record[name]`` of a record of ``<table>.json``; a :class:`DataError` naming the file,
+        the record and the field when it is missing."""
+        try:
+            return record[name]
+        except KeyError:
+            raise DataError(f"{self.root / self.version / table}.json: record {record.get('token', '?')} "
+                            f"has no field '{name}'") from None
+
+    def _numbers(self, table: str, record: dict, name: str, shape: tuple[int, ...]):
+        """``record[name]`` as it is, once checked to be finite numbers of ``shape``."""
+        value = self._field(table, record, name)
+        try:
+            ok = np.asarray(value, dtype=np.float64).shape == shape and np.isfinite(value).all()
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise DataError(f"{self.root / self.version / table}.json: record {record.get('token', '?')} field "
+                            f"'{name}' must be {math.prod(shape)} finite numbers, got {value!r}")
+        return value
+
+    def _T_parent_from(self, sd: dict, table: str) -> np.ndarray:
+        """(4, 4) float64 transform of the ``ego_pose`` (T_global_from_ego) or
+        ``calibrated_sensor`` (T_ego_from_sensor) record of sample_data ``sd``."""
+        record = self.nusc.get(table, self._field("sample_data", sd, f"{table}_token"))
+        return transform_from(self._numbers(table, record, "translation", (3,)),
+                              self._numbers(table, record, "rotation", (4,)))
+
     def _T_global_from_sensor(self, sd: dict) -> np.ndarray:
         """(4, 4) float64 T_global_from_X for a sample_data record X (its own ego pose)."""
-        pose = self.nusc.get("ego_pose", sd["ego_pose_token"])
-        calib = self.nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
-        return transform_from(pose["translation"], pose["rotation"]) @ transform_from(
-            calib["translation"], calib["rotation"]
-        )
+        return self._T_parent_from(sd, "ego_pose") @ self._T_parent_from(sd, "calibrated_sensor")
 
     def _cameras(self, sample: dict, T_lidar_from_global: np.ndarray):
         """images (N, 3, H, W) float32, K (N, 3, 3), T_lidar_from_cam (N, 4, 4), img_aug (N, 3, 3)."""
@@ -378,9 +352,9 @@ class NuScenesDetection(torch.utils.data.Dataset):
         for cam in CAMERAS:
             sd = self.nusc.get("sample_data", sample["data"][cam])
             calib = self.nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
-            image, A = resize_and_crop(load_image(self.root / sd["filename"]), (H, W))
+            image, A = resize_and_crop(load_image(self.root / self._field("sample_data", sd, "filename")), (H, W))
             images.append(((image.astype(np.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1))
-            Ks.append(np.asarray(calib["camera_intrinsic"], dtype=np.float64))
+            Ks.append(np.asarray(self._numbers("calibrated_sensor", calib, "camera_intrinsic", (3, 3)), np.float64))
             Ts.append(T_lidar_from_global @ self._T_global_from_sensor(sd))
             As.append(A)
         return np.stack(images), np.stack(Ks), np.stack(Ts), np.stack(As)
@@ -389,13 +363,14 @@ class NuScenesDetection(torch.utils.data.Dataset):
         """(n, 5) float32 points of the key sweep and its previous sweeps, key-frame lidar frame
         (x, y, z, intensity / 255, time lag), and their (n,) ring indices."""
         chunks, rings, sd = [], [], key_sd
+        key_time = self._numbers("sample_data", key_sd, "timestamp", ())
         for k in range(self.cfg.n_sweeps):
-            raw = load_points(self.root / sd["filename"])
+            raw = load_points(self.root / self._field("sample_data", sd, "filename"))
             xyz = raw[:, :3]
             if k > 0:   # the key sweep stays bit-exact: it is already in the key-frame lidar frame
                 T_key_from_sweep = T_lidar_from_global @ self._T_global_from_sensor(sd)
                 xyz = (xyz.astype(np.float64) @ T_key_from_sweep[:3, :3].T + T_key_from_sweep[:3, 3]).astype(np.float32)
-            lag = (key_sd["timestamp"] - sd["timestamp"]) * 1e-6       # integer us -> s
+            lag = (key_time - self._numbers("sample_data", sd, "timestamp", ())) * 1e-6     # integer us -> s
             chunks.append(np.column_stack([xyz, raw[:, 3] / np.float32(255.0), np.full(len(raw), lag, np.float32)]))
             rings.append(raw[:, 4])
             if not sd["prev"]:
@@ -414,11 +389,13 @@ class NuScenesDetection(torch.utils.data.Dataset):
         boxes, labels = [], []
         for token in sample["anns"]:
             ann = self.nusc.get("sample_annotation", token)
-            name = category_to_detection_name(ann["category_name"])
-            if name not in label_of or ann["num_lidar_pts"] < self.cfg.min_points:
+            name = category_to_detection_name(self._field("sample_annotation", ann, "category_name"))
+            if name not in label_of or self._numbers("sample_annotation", ann, "num_lidar_pts", ()) < self.cfg.min_points:
                 continue
-            box = box_to_lidar(ann["translation"], ann["size"], ann["rotation"], T_lidar_from_global)
-            velocity = np.nan_to_num(self.nusc.box_velocity(token), nan=0.0)   # global, m/s
+            box = box_to_lidar(self._numbers("sample_annotation", ann, "translation", (3,)),
+                               self._numbers("sample_annotation", ann, "size", (3,)),
+                               self._numbers("sample_annotation", ann, "rotation", (4,)), T_lidar_from_global)
+            velocity = self._velocity(token)       # global, m/s; NaN (unknown) stays NaN
             v_lidar = R_lidar_from_global @ velocity
             boxes.append(np.concatenate([box, v_lidar[:2]]))
             labels.append(label_of[name])
@@ -427,6 +404,15 @@ class NuScenesDetection(torch.utils.data.Dataset):
         lo, hi = np.asarray(self.cfg.point_range[:3]), np.asarray(self.cfg.point_range[3:])
         keep = ((boxes[:, :3] >= lo) & (boxes[:, :3] < hi)).all(axis=1)
         return boxes[keep].astype(np.float32), labels[keep]
+
+    def _velocity(self, token: str) -> np.ndarray:
+        """(3,) the devkit's velocity of annotation ``token`` (global, m/s; NaN where unknown),
+        from its neighbours in time, whose records it reads."""
+        try:
+            return self.nusc.box_velocity(token)
+        except KeyError as e:
+            raise DataError(f"{self.root / self.version}/sample_annotation.json: a neighbour of record {token} "
+                            f"has no field {e}") from None
 
 
 def _official_splits() -> set[str]:

@@ -7,7 +7,7 @@ lidar object its cameras do not show, which teaches it to detect from the lidar 
 camera has no evidence, the behaviour a robust fusion wants anyway (BEVFusion pastes for its
 fusion models too). The pasted points are flagged (``Sample.pasted``) so that the camera's
 depth supervision ignores them, and the ``camera`` variant does not paste at all: it would be
-asked to find objects with no pixels (:func:`clfbev.train.recipe`).
+asked to find objects with no pixels (:func:`clfbev.run.train_config.recipe`).
 
 An object is cut with the points of every sweep, each sweep's points from where the object was
 at that sweep's time (:func:`object_points`): a moving object keeps the trail of its older
@@ -32,17 +32,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from clfbev.data import Sample
-from clfbev.ops.boxes import bev_iou
-
-
-def points_in_box(points: np.ndarray, box: np.ndarray, pad: float = 0.0) -> np.ndarray:
-    """(n,) bool: points (n, >=3) inside ``box`` (x, y, z, l, w, h, yaw), grown by ``pad``."""
-    c, s = np.cos(box[6]), np.sin(box[6])
-    d = points[:, :3] - box[:3]
-    u = d[:, 0] * c + d[:, 1] * s            # along the box's length
-    v = -d[:, 0] * s + d[:, 1] * c
-    return (np.abs(u) <= box[3] / 2 + pad) & (np.abs(v) <= box[4] / 2 + pad) & (np.abs(d[:, 2]) <= box[5] / 2 + pad)
+from clfbev.data import Sample, velocity_or_still
+from clfbev.ops.boxes import bev_iou, points_in_boxes
 
 
 def object_points(points: np.ndarray, box: np.ndarray) -> np.ndarray:
@@ -53,19 +44,18 @@ def object_points(points: np.ndarray, box: np.ndarray) -> np.ndarray:
     box moved back to where the object was then, its centre ``- (vx, vy) tau``. The sweeps are
     motion-compensated into the key frame's lidar frame, so only the object's own motion is
     left; its yaw change over half a second is neglected. An unknown (NaN) velocity counts
-    as 0.
+    as 0 here (:func:`clfbev.data.velocity_or_still`); the box keeps it NaN.
     """
-    velocity = np.nan_to_num(box[7:9].astype(np.float64))
+    velocity = velocity_or_still(box)
     shift = np.zeros((len(points), 3))
     shift[:, :2] = points[:, 4:5] * velocity            # (n, 2): the object's motion since each sweep
-    return points_in_box(points[:, :3] + shift, box[:7])
+    return points_in_boxes(points[:, :3] + shift, box[None, :7])[:, 0]
 
 
 class SortedPoints:
     """A point cloud (n, >= 5) ordered by x, so that an object's points are looked for only in
-    the slab of x that its box reaches over the sweeps: :func:`object_points` on the whole
-    cloud costs about 15 ms per object for a 10-sweep sample of 290k points, and a database of
-    the benchmark's 640 training samples cuts 24k objects."""
+    the slab of x that its box reaches over the sweeps, not in the whole cloud: a database cuts
+    every object of the training split."""
 
     def __init__(self, points: np.ndarray) -> None:
         self.points = points
@@ -78,7 +68,7 @@ class SortedPoints:
         # A point inside the box has |x - centre_x| <= (l |cos| + w |sin|) / 2; the centre moves
         # back along vx over the sweeps. The 1 mm margin covers float32 rounding.
         half = 0.5 * (abs(box[3] * np.cos(box[6])) + abs(box[4] * np.sin(box[6]))) + 1e-3
-        then = box[0] - np.nan_to_num(box[7]) * self.oldest
+        then = box[0] - velocity_or_still(box)[0] * self.oldest
         lo = min(box[0], then) - half
         hi = max(box[0], then) + half
         candidates = np.sort(self.order[np.searchsorted(self.x, lo, "left") : np.searchsorted(self.x, hi, "right")])
@@ -124,7 +114,7 @@ def _swept(boxes: np.ndarray, lag: float) -> torch.Tensor:
     leave no gap along the trail for the speeds and sweep spans of road traffic: a car at
     14 m/s moves 3.2 m in half of 0.45 s, less than its length)."""
     key = torch.from_numpy(boxes[:, :7]).double()
-    velocity = torch.from_numpy(np.nan_to_num(boxes[:, 7:9])).double()
+    velocity = torch.from_numpy(velocity_or_still(boxes))
     places = []
     for t in (0.0, 0.5 * lag, lag):
         b = key.clone()
@@ -145,33 +135,37 @@ def draw_objects(db: GTDatabase, k: int, rng: np.random.Generator, balanced: boo
 
 def gt_paste(sample: Sample, db: GTDatabase, n: int, rng: np.random.Generator, balanced: bool = False) -> Sample:
     """Paste up to ``n`` database objects (drawn with ``rng``, see :func:`draw_objects`) into
-    ``sample``."""
+    ``sample``: the first that overlap nothing already there, with their points in place of the
+    sample's points they cover."""
     if n <= 0 or len(db) == 0:
         return sample
-    order = draw_objects(db, 4 * n, rng, balanced)     # a few spares for those that collide
-    boxes = sample.gt_boxes.numpy()
-    pts = sample.points.numpy()
-    cloud = SortedPoints(pts)
-    taken = _swept(boxes, cloud.oldest)
-    chosen = []
-    for i in order:
-        if len(chosen) == n:
-            break
-        cand = _swept(db.boxes[i : i + 1], cloud.oldest)
-        if len(taken) and (bev_iou(cand, taken) > 0).any():
-            continue
-        chosen.append(int(i))
-        taken = torch.cat([taken, cand])
+    cloud = SortedPoints(sample.points)
+    chosen = _free_objects(db, draw_objects(db, 4 * n, rng, balanced), sample.gt_boxes, cloud.oldest, n)
     if not chosen:
         return sample
+    pts = sample.points
     keep = np.ones(len(pts), bool)
     for i in chosen:
         keep[cloud.object_index(db.boxes[i])] = False
     new_pts = np.concatenate([pts[keep], *[db.points[i] for i in chosen]]).astype(pts.dtype)
-    was_pasted = np.zeros(len(pts), bool) if sample.pasted is None else sample.pasted.numpy()
+    was_pasted = np.zeros(len(pts), bool) if sample.pasted is None else sample.pasted
     pasted = np.concatenate([was_pasted[keep], np.ones(len(new_pts) - int(keep.sum()), bool)])
-    return replace(sample,
-                   points=torch.from_numpy(new_pts),
-                   pasted=torch.from_numpy(pasted),
-                   gt_boxes=torch.from_numpy(np.concatenate([boxes, db.boxes[chosen]]).astype(boxes.dtype)),
-                   gt_labels=torch.cat([sample.gt_labels, torch.from_numpy(db.labels[chosen])]))
+    return replace(sample, points=new_pts, pasted=pasted,
+                   gt_boxes=np.concatenate([sample.gt_boxes, db.boxes[chosen]]).astype(sample.gt_boxes.dtype),
+                   gt_labels=np.concatenate([sample.gt_labels, db.labels[chosen]]))
+
+
+def _free_objects(db: GTDatabase, order: np.ndarray, boxes: np.ndarray, lag: float, n: int) -> list[int]:
+    """Up to ``n`` of the database objects ``order`` (in that order) whose swept boxes overlap
+    neither a box of ``boxes`` (M, 9) nor an object taken before them."""
+    taken = _swept(boxes, lag)
+    chosen = []
+    for i in order:                      # a few spares for those that collide
+        if len(chosen) == n:
+            break
+        cand = _swept(db.boxes[i : i + 1], lag)
+        if len(taken) and (bev_iou(cand, taken) > 0).any():
+            continue
+        chosen.append(int(i))
+        taken = torch.cat([taken, cand])
+    return chosen

@@ -1,5 +1,5 @@
 """Anchor detection head (PointPillars / SECOND SSD head): predictions and decoding to boxes
-(the target assignment is :mod:`clfbev.assign`).
+(the target assignment is :mod:`clfbev.supervision.assign`).
 
 Layout
 ------
@@ -216,6 +216,19 @@ def correct_direction(yaw: Tensor, dir_bin: Tensor, dir_offset: float = DIR_OFFS
     return limit_period(yaw - dir_offset, 0.0, period) + dir_offset + period * dir_bin.to(yaw.dtype)
 
 
+def heading_from_motion(boxes: Tensor, min_speed: float, dir_offset: float = DIR_OFFSET) -> Tensor:
+    """(K,) the yaw of ``boxes`` (K, >= 9) ``x, y, z, l, w, h, yaw, vx, vy`` (lidar frame),
+    turned by pi where the box moves faster than ``min_speed`` m/s against its heading.
+
+    A vehicle, cycle or walker moves forwards: where the velocity, read from the sweeps' trail,
+    is clearly above noise it tells front from back better than the direction bin, which sees
+    a near-symmetric shape. Kept in ``[dir_offset, dir_offset + 2 pi)``."""
+    yaw, vx, vy = boxes[:, 6], boxes[:, 7], boxes[:, 8]
+    against = (torch.cos(yaw) * vx + torch.sin(yaw) * vy) < 0
+    turn = against & (torch.hypot(vx, vy) > min_speed)
+    return limit_period(torch.where(turn, yaw + math.pi, yaw) - dir_offset, 0.0, 2.0 * math.pi) + dir_offset
+
+
 @torch.no_grad()
 def decode(
     cls_logits: Tensor,
@@ -227,6 +240,7 @@ def decode(
     max_per_sample: int = 500,
     pre_nms: int = 1000,
     dir_offset: float = DIR_OFFSET,
+    heading_speed: float = 0.0,
 ) -> list[Detections]:
     """Head maps -> boxes in the lidar frame, per sample.
 
@@ -243,6 +257,8 @@ def decode(
     max_per_sample : boxes kept per sample after NMS.
     pre_nms : anchors considered per sample (bounds NMS cost).
     dir_offset : start of the direction bins, as in training.
+    heading_speed : m/s; above it a box's heading follows its predicted velocity
+        (:func:`heading_from_motion`); 0: off.
 
     Returns
     -------
@@ -264,6 +280,8 @@ def decode(
         boxes = decode_boxes(deltas, flat_anchors[top])
         dir_bin = flat.dir_logits[b, top].argmax(dim=-1)
         boxes[:, 6] = correct_direction(boxes[:, 6], dir_bin, dir_offset, n_bins)
+        if heading_speed > 0 and boxes.shape[1] >= 9:
+            boxes[:, 6] = heading_from_motion(boxes, heading_speed, dir_offset)
         labels = class_ids[top]
 
         # Per-class NMS: a car and a pedestrian may overlap in BEV (a person next to a door).

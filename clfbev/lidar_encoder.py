@@ -4,32 +4,44 @@ Paper: "an MLP lifts the points to 512 dimensions, and max-pooling per voxel giv
 feature" (VoxelNet style), then "a 3D sparse conv encoder, then compression along z gives the
 lidar BEV" (SECOND style).
 
-Points are ``(n, 5)`` float in the lidar frame (x forward, y left, z up, metres): columns
+Points are ``(n, 5)`` float in the lidar frame (z up, metres; nuScenes mounts LIDAR_TOP with x
+to the right of the car and y forward): columns
 ``x, y, z, intensity, time_lag``, where ``time_lag`` is the age in seconds of the sweep a point
 comes from (0 for the key frame; multi-sweep lidar, as the nuScenes peers use for velocity).
 Only columns 0..2 have a geometric meaning here; any further columns are passed to the MLP as
 they are, so ``point_ch`` may be anything >= 3.
 
 Grid convention: voxel index (b, z, y, x), as in ``clfbev.ops.voxelize``; BEV maps are
-``(B, C, ny, nx)``, row = y index (increasing y = left), column = x index (increasing x = forward).
+``(B, C, ny, nx)``, row = y index, column = x index.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
 from clfbev.layers import BN_EPS, BN_MOMENTUM
 from clfbev.ops.sparse_conv import SparseConv3d, SparseTensor, SubMConv3d, subm_rulebook
-from clfbev.ops.voxelize import grid_shape_of, voxelize
+from clfbev.ops.voxelize import voxelize
+from clfbev.settings import conv_out_size, grid_shape_of
 from clfbev.sweep_bev import sweep_occupancy
 
 Triple = tuple[int, int, int]
 
 
-def conv_out_size(n: int, kernel: int, stride: int, padding: int) -> int:
-    """Output length of a conv along one axis, the ``nn.Conv3d`` formula the rulebooks use."""
-    return (n + 2 * padding - kernel) // stride + 1
+class LidarFeatures(NamedTuple):
+    """The lidar BEV and, by name, the motion features inside it.
+
+    bev : (B, out_channels, ny, nx) the lidar BEV: the sparse encoder's channels, then the sweep
+        bands (if any).
+    motion : (B, sweep_bands, ny, nx) the sweep bands (:mod:`clfbev.sweep_bev`), which the
+        velocity tower reads beside the backbone's features; None without sweep bands.
+    """
+
+    bev: Tensor
+    motion: Tensor | None
 
 
 class VFE(nn.Module):
@@ -320,7 +332,7 @@ class LidarEncoder(nn.Module):
         Parameters
         ----------
         points : a list of B tensors (n_i, point_ch), or one (N, point_ch) tensor with
-            ``batch_idx``; float, lidar frame (x forward, y left, z up, metres).
+            ``batch_idx``; float, lidar frame (metres).
         batch_idx : (N,) long sample index, only with a tensor ``points``.
         batch_size : B, only with a tensor ``points``; default ``batch_idx.max() + 1``
             (pass it when trailing samples may have no points).
@@ -329,6 +341,16 @@ class LidarEncoder(nn.Module):
         -------
         lidar_bev : (B, out_channels, ny_out, nx_out); zero where no voxel reaches a cell.
         """
+        return self.encode(points, batch_idx, batch_size).bev
+
+    def encode(
+        self,
+        points: Tensor | list[Tensor],
+        batch_idx: Tensor | None = None,
+        batch_size: int | None = None,
+    ) -> LidarFeatures:
+        """The lidar BEV and the motion features (:class:`LidarFeatures`); the parameters are
+        those of :meth:`forward`."""
         if isinstance(points, (list, tuple)):
             if batch_idx is not None:
                 raise ValueError("batch_idx is implied by a list of point clouds; pass one or the other")
@@ -350,11 +372,12 @@ class LidarEncoder(nn.Module):
         if vox.coords.shape[0] == 0:
             # No point in range anywhere in the batch: the BEV is empty (BatchNorm cannot run on
             # zero rows in training mode, so short-cut it).
-            return points.new_zeros((batch_size, self.out_channels, ny, nx))
+            bev = points.new_zeros((batch_size, self.out_channels, ny, nx))
+            return LidarFeatures(bev, bev[:, self.sparse.out_channels:] if self.sweep_bands else None)
         feats = self.vfe(points[vox.point_index], vox.voxel_id, vox.num_points, vox.coords)  # (V, vfe_ch)
         bev = self.sparse(SparseTensor(feats, vox.coords, vox.grid_shape, batch_size))
         if not self.sweep_bands:
-            return bev
+            return LidarFeatures(bev, None)
         bands = sweep_occupancy(points, batch_idx, batch_size, self.pc_range, (ny, nx), self.sweep_bands,
-                                self.time_lag_span)
-        return torch.cat([bev, bands.to(bev.dtype)], dim=1)
+                                self.time_lag_span).to(bev.dtype)
+        return LidarFeatures(torch.cat([bev, bands], dim=1), bands)

@@ -18,7 +18,11 @@ and the query is never anything but the lidar BEV, as the paper says. Applying M
 ConvFuser output instead would make the queries partly camera features.
 
 At initialisation the fused variants are their lidar path exactly (see :mod:`clfbev.fusion`),
-and the camera branch learns depth from the lidar from the first step (:mod:`clfbev.depth`).
+and the camera branch learns depth from the lidar from the first step
+(:mod:`clfbev.supervision.depth`).
+
+The forward returns :class:`clfbev.outputs.ModelOutputs`; the training targets are built with
+the batch in the loader and the loss is taken outside the model (:mod:`clfbev.supervision`).
 
 Frames: everything is in the key-frame lidar frame; BEV maps are (B, C, ny, nx) with rows along
 y and columns along x over ``cfg.pc_range``. Predictions are boxes in that frame.
@@ -31,18 +35,15 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from clfbev.anchors import make_anchors, match_thresholds
+from clfbev.anchors import make_anchors
 from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import VARIANTS, ModelConfig
 from clfbev.data import Batch
-from clfbev.depth import bins_of, depth_loss, nearest_lidar_points
 from clfbev.fusion import BSM, MCM, ConvFuser
-from clfbev.assign import assign_targets, stack_targets
-from clfbev.head import AnchorHead, Detections, HeadOutput, decode
+from clfbev.head import AnchorHead, Detections, decode
 from clfbev.layers import BN_EPS, BN_MOMENTUM, conv_bn_relu
 from clfbev.lidar_encoder import LidarEncoder
-from clfbev.losses import detection_loss
-from clfbev.perspective import cell_classes, semantic_loss
+from clfbev.outputs import AttentionInputs, ModelOutputs
 
 
 class Encoded(NamedTuple):
@@ -51,13 +52,16 @@ class Encoded(NamedTuple):
     bev : (B, cfg.bev_channels_of(variant), ny, nx) the backbone's input, lidar frame.
     depth : (B, N, D, h, w) the camera's depth distribution, None without a camera.
     semantics : (B, N, n_classes, h, w) the perspective head's logits, None without one.
-    motion : (B, motion_ch, ny, nx) the velocity tower's sweep bands, None without a tower.
+    motion : (B, sweep_bands, ny, nx) the lidar's motion features for the velocity tower, None
+        without a tower (or without sweep bands).
+    attention : the attention modules' inputs.
     """
 
     bev: Tensor
     depth: Tensor | None
     semantics: Tensor | None
     motion: Tensor | None
+    attention: AttentionInputs
 
 
 class BEVBackbone(nn.Module):
@@ -153,15 +157,14 @@ class CLFusionBEV(nn.Module):
         if variant == "full":
             self.bsm = BSM(cfg.fusion_dim, **attn)
 
-        # BEV backbone and head.
+        # BEV backbone and head; the velocity tower also reads the lidar's motion features.
         self.backbone = BEVBackbone(cfg.bev_channels_of(variant), cfg.bev_channels, cfg.bev_blocks, cfg.bev_up_ch)
-        # The velocity tower also reads the sweep bands, the last channels of the lidar BEV.
         self.motion_ch = cfg.sweep_bands if uses_lidar and cfg.velocity_tower else 0
         self.head = AnchorHead(self.backbone.out_channels, len(cfg.class_names), len(cfg.anchor_rotations),
                                cfg.code_size, cfg.n_dir_bins, cfg.prior_prob, cfg.velocity_tower, self.motion_ch)
+        # For decoding; the training targets take theirs from the config (clfbev.supervision.targets).
         anchors = make_anchors(cfg.class_names, cfg.head_feature_size, cfg.pc_range, cfg.anchor_rotations)
         self.register_buffer("anchors", anchors, persistent=False)  # (ny, nx, n_cls, n_rot, 7)
-        self.thresholds = match_thresholds(cfg.class_names)
 
     # ------------------------------------------------------------------ forward
 
@@ -170,82 +173,46 @@ class CLFusionBEV(nn.Module):
         return self._encode(batch).bev
 
     def _encode(self, batch: Batch) -> Encoded:
-        """The BEV map and what the losses and the velocity tower read beside it (:class:`Encoded`)."""
-        lidar_bev = cam_bev = depth = motion = semantics = None
+        """The BEV map and what the losses, the velocity tower and the attention picture read
+        beside it (:class:`Encoded`)."""
+        lidar = cam_bev = depth = semantics = motion = None
         if self.lidar_encoder is not None:
-            lidar_bev = self.lidar_encoder(batch.points)                      # (B, Cl, ny, nx)
+            lidar = self.lidar_encoder.encode(batch.points)                   # (B, Cl, ny, nx)
             if self.motion_ch:
-                motion = lidar_bev[:, -self.motion_ch:]
+                motion = lidar.motion                                         # (B, sweep_bands, ny, nx)
         if self.camera_encoder is not None:
             cam_bev, depth, semantics = self.camera_encoder.lift_splat(batch.images, batch.intrinsics,
                                                                        batch.T_lidar_from_cam, batch.img_aug)
         if self.variant == "lidar":
-            return Encoded(lidar_bev, None, None, motion)
+            return Encoded(lidar.bev, None, None, motion, AttentionInputs())
         if self.variant == "camera":
-            return Encoded(cam_bev, depth, semantics, None)
-        return Encoded(self.fuse(lidar_bev, cam_bev), depth, semantics, motion)
+            return Encoded(cam_bev, depth, semantics, None, AttentionInputs())
+        fused, attention = self.fuse(lidar.bev, cam_bev)
+        return Encoded(fused, depth, semantics, motion, attention)
 
-    def fuse(self, lidar_bev: Tensor, cam_bev: Tensor) -> Tensor:
+    def fuse(self, lidar_bev: Tensor, cam_bev: Tensor) -> tuple[Tensor, AttentionInputs]:
         """MCM -> ConvFuser -> BSM, as the variant has them: (B, Cl, ny, nx), (B, Cc, ny, nx) ->
-        (B, fusion_dim, ny, nx)."""
+        (B, fusion_dim, ny, nx), and the inputs the attention modules were given."""
+        attention = AttentionInputs()
         if self.mcm is not None:
             # MCM: lidar BEV queries attend to the camera BEV and are updated by it.
+            attention = attention._replace(mcm_lidar=lidar_bev, mcm_camera=cam_bev)
             lidar_bev = self.mcm(lidar_bev, cam_bev)                          # (B, dim, ny, nx)
         fused = self.fuser(lidar_bev, cam_bev)                                # (B, dim, ny, nx)
         if self.bsm is not None:
             # BSM: self-attention over the fused BEV for global context.
+            attention = attention._replace(bsm=fused)
             fused = self.bsm(fused)
-        return fused
+        return fused, attention
 
-    def forward(self, batch: Batch) -> HeadOutput:
-        """Batch -> head maps on the BEV grid: cls (B, A, ny, nx), box (B, A * code_size, ny, nx),
-        dir (B, A * n_dir_bins, ny, nx), with A = n_classes * n_rotations."""
+    def forward(self, batch: Batch) -> ModelOutputs:
+        """Batch -> :class:`clfbev.outputs.ModelOutputs`: the head maps on the BEV grid, the
+        camera's depth distribution and class logits, and the attention modules' inputs."""
         enc = self._encode(batch)
-        return self.head(self.backbone(enc.bev), enc.motion)
+        head = self.head(self.backbone(enc.bev), enc.motion)
+        return ModelOutputs(head, enc.depth, enc.semantics, enc.attention)
 
     # ------------------------------------------------------------------ training and inference
-
-    def loss(self, batch: Batch) -> dict[str, Tensor]:
-        """Detection loss (paper eq. 9) of a batch, see :func:`clfbev.losses.detection_loss`, plus
-        ``cfg.loss.depth`` times the camera's depth loss (:mod:`clfbev.depth`) for the variants
-        with a camera; ``loss_depth`` is reported whenever there is a camera. With a perspective
-        head (``cfg.loss.semantic > 0``), plus that weight times ``loss_semantic``
-        (:mod:`clfbev.perspective`).
-
-        ``batch.gt_boxes`` are (M_i, 9) ``x, y, z, l, w, h, yaw, vx, vy`` in the lidar frame and
-        ``batch.gt_labels`` (M_i,) indices into ``cfg.class_names``.
-        """
-        cfg = self.cfg
-        enc = self._encode(batch)
-        out = self.head(self.backbone(enc.bev), enc.motion)
-        targets = stack_targets([
-            assign_targets(self.anchors, boxes[:, : cfg.code_size], labels, self.thresholds,
-                           n_dir_bins=cfg.n_dir_bins)
-            for boxes, labels in zip(batch.gt_boxes, batch.gt_labels)
-        ])
-        losses = detection_loss(out, targets, cfg.loss)
-        if enc.depth is not None:
-            losses.update(self._camera_losses(batch, enc))
-            if cfg.loss.depth > 0:
-                losses["loss"] = losses["loss"] + cfg.loss.depth * losses["loss_depth"]
-            if enc.semantics is not None:
-                losses["loss"] = losses["loss"] + cfg.loss.semantic * losses["loss_semantic"]
-        return losses
-
-    def _camera_losses(self, batch: Batch, enc: Encoded) -> dict[str, Tensor]:
-        """``loss_depth`` and, with a perspective head, ``loss_semantic``, unweighted."""
-        cfg = self.cfg
-        cams = (batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug, cfg.image_size, cfg.feature_stride,
-                cfg.depth_bins)
-        out = {}
-        with torch.no_grad():
-            depth, nearest = nearest_lidar_points(batch.points, *cams, batch.pasted or None)
-        out["loss_depth"] = depth_loss(enc.depth, bins_of(depth, cfg.depth_bins))
-        if enc.semantics is not None:
-            with torch.no_grad():
-                classes = cell_classes(nearest, batch.points, batch.gt_boxes, batch.gt_labels, len(cfg.class_names))
-            out["loss_semantic"] = semantic_loss(enc.semantics, classes, cfg.loss.focal_alpha, cfg.loss.focal_gamma)
-        return out
 
     @torch.no_grad()
     def predict(
@@ -259,13 +226,13 @@ class CLFusionBEV(nn.Module):
         frame, scores (K,), labels (K,). Defaults from ``cfg``. The caller picks train/eval mode
         (use ``model.eval()`` for BatchNorm running statistics)."""
         cfg = self.cfg
-        out = self(batch)
+        out = self(batch).head
         return decode(
             out.cls_logits, out.box_deltas, out.dir_logits, self.anchors,
             score_thr=cfg.score_thr if score_thr is None else score_thr,
             nms_iou=cfg.nms_iou if nms_iou is None else nms_iou,
             max_per_sample=cfg.max_per_sample if max_per_sample is None else max_per_sample,
-            pre_nms=cfg.pre_nms,
+            pre_nms=cfg.pre_nms, heading_speed=cfg.heading_from_motion,
         )
 
 

@@ -1,15 +1,12 @@
 """The lidar sweeps' time axis as BEV channels: per BEV cell, the points of each band of time lag.
 
-Velocity is read from how far a moving object's older sweeps trail behind its newest: 3.6 m for
-a car at 8 m/s over the 0.45 s of 10 sweeps, 4 to 5 cells of the 0.8 m BEV. The VFE sees every
-point's lag, but its max over a voxel's points and the sparse encoder's first stage (8 channels
-in ``tiny``) bring the lag to the BEV only weakly: trained on the velocity loss alone, 200 steps
-of ``tiny`` ``lidar`` bring the cosine between the predicted and the true velocity of moving cars
-to 0.37-0.73, and with the detection losses beside it to about 0 in 300 steps
-(docs/benchmarks.md). Counting each lag
-band's points per cell hands the 2D backbone the trail itself, so that its 3x3 convolutions can
-compare where the old and the new points are: the "early fusion" of Luo et al., *Fast and
-Furious* (CVPR 2018), which stacks the sweeps' occupancy along the channels of the BEV.
+Velocity is read from how far a moving object's older sweeps trail behind its newest: several
+BEV cells for a car at urban speed over the span of 10 sweeps. The VFE sees every point's lag,
+but its max over a voxel's points and the sparse encoder's narrow first stage bring the lag to
+the BEV only weakly. Counting each lag band's points per cell hands the 2D backbone the trail
+itself, so that its 3x3 convolutions can compare where the old and the new points are: the
+"early fusion" of Luo et al., *Fast and Furious* (CVPR 2018), which stacks the sweeps'
+occupancy along the channels of the BEV.
 """
 from __future__ import annotations
 

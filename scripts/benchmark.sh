@@ -100,7 +100,7 @@ data_id=$($PY scripts/data_identity.py "$DATA")
 echo "$data_id" > "$OUT/.data_id.tmp" && mv "$OUT/.data_id.tmp" "$OUT/data_id"
 
 ckpt_step() {  # the optimizer step a last.pt was written at
-  $PY -c 'import sys; from clfbev.checkpoint import load_checkpoint; print(load_checkpoint(sys.argv[1])["step"])' "$1"
+  $PY -c 'import sys; from clfbev.run.checkpoint import load_checkpoint; print(load_checkpoint(sys.argv[1])["step"])' "$1"
 }
 record() {  # run folder, stage, extra JSON fields: one line per part in RUN/wall.jsonl
   echo "{\"stage\": \"$2\", $3, \"threads\": $THREADS, \"cores\": $(nproc), \"end\": \"$(date -u +%Y-%m-%dT%H:%M:%SZ)\"}" >> "$1/wall.jsonl"

@@ -4,7 +4,7 @@
 # demo_out/REPORT.md with the metrics, the loss curve and camera / BEV / attention pictures.
 #   bash scripts/demo.sh                       # defaults below (about 30 min on 2 CPU cores)
 #   SCENES=4 SAMPLES=6 EPOCHS=1 bash scripts/demo.sh   # a quick look
-# Training uses the tiny config's recipe (`clfbev train --config tiny`, see clfbev/train.py:
+# Training uses the tiny config's recipe (`clfbev train --config tiny`, see clfbev/run/train_config.py:
 # recipe); EPOCHS only shortens it.
 # Every stage resumes: rerunning after an interruption continues where it stopped.
 set -euo pipefail

@@ -20,8 +20,9 @@ def main() -> int:
     ap.add_argument("out", type=Path, help="the demo's output folder")
     ap.add_argument("--timing", type=Path, required=True, help="JSON of stage -> seconds")
     args = ap.parse_args()
-    from clfbev.cli import format_summary
-    from clfbev.visualize import plot_loss_curve
+    from clfbev import io
+    from clfbev.run.cli import format_summary
+    from clfbev.run.run_log import plot_loss_curve
 
     out = args.out
     timing = json.loads(args.timing.read_text())
@@ -61,7 +62,7 @@ def main() -> int:
         "## Evaluation (official nuScenes DetectionEval on sim-val)",
         "",
         "Classes restricted to those with ground truth in the split. The attribute is derived from "
-        "the predicted speed, not learned (see clfbev/evaluate.py).",
+        "the predicted speed, not learned (see clfbev/run/evaluate.py).",
         "",
         "```", format_summary(summary), "```",
         "",
@@ -75,9 +76,7 @@ def main() -> int:
         "![camera overlays, BEV and attention maps](overlay.png)",
         "",
     ]
-    tmp = out / ".REPORT.md.tmp"
-    tmp.write_text("\n".join(lines))
-    tmp.replace(out / "REPORT.md")
+    io.write_text(out / "REPORT.md", "\n".join(lines))
     print(f"wrote {out / 'REPORT.md'}: mAP {summary['mean_ap']:.4f}, NDS {summary['nd_score']:.4f}, "
           f"car AP {summary['mean_dist_aps'].get('car', float('nan')):.4f}")
     return 0

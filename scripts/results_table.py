@@ -6,8 +6,9 @@
 Reads OUT/benchmark.json (the benchmark's settings), the dataset's splits, and per run
 RUN/run.json (recipe, code version), RUN/wall.jsonl (the timed parts) and
 RUN/eval/metrics_summary.json (the devkit's summary). A run without the summary is listed as
-pending. The file is replaced atomically, so a reader never sees half a table. Standard library
-only: it runs in a second and needs no model.
+pending; a file that is junk or lacks a field the table needs is one line naming it, exit 2.
+The file is replaced atomically, so a reader never sees half a table. It runs in a second and
+needs no model.
 """
 from __future__ import annotations
 
@@ -18,37 +19,77 @@ import sys
 import time
 from pathlib import Path
 
-from clfbev import atomic
+from clfbev import io
 from clfbev.config import ModelConfig
+from clfbev.errors import ConfigError, DataError, run_guarded
+from clfbev.run.train_config import BOOKKEEPING, TrainConfig
 
 VERSION = "v1.0-sim"
 # The devkit's five TP errors (nuscenes.eval.detection.constants.TP_METRICS) and their columns.
 TP_COLUMNS = {"trans_err": "mATE", "scale_err": "mASE", "orient_err": "mAOE", "vel_err": "mAVE", "attr_err": "mAAE"}
-# The devkit's ten detection classes (detection_cvpr_2019), to name the ones not evaluated.
+# The devkit's ten detection classes in its order (nuscenes.eval.detection.constants.DETECTION_NAMES),
+# to name the ones not evaluated.
 DETECTION_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian", "motorcycle",
                      "bicycle", "traffic_cone", "barrier")
-# Train-config fields that do not change the result (how often to save, loader processes).
-BOOKKEEPING = ("ckpt_minutes", "save_every_steps", "workers")
-# Train-config fields the recipe sets per variant (clfbev.train.recipe: the camera variant pastes
-# nothing, as the pasted objects have no pixels): they must agree within a variant, not across.
+# Train-config fields the recipe sets per variant (clfbev.run.train_config.recipe: the camera
+# variant pastes nothing, as the pasted objects have no pixels): they must agree within a
+# variant, not across.
 PER_VARIANT = ("gt_paste",)
+# The fields each file must have for the table (``a.b``: field b of the object in field a).
+SETTINGS_FIELDS = ("scenes", "samples_per_scene", "resolution", "data_seed", "val_fraction", "steps")
+RUN_FIELDS = ("config", "train.max_steps", "train.batch_size")
+SUMMARY_FIELDS = ("mean_ap", "nd_score", "mean_dist_aps", *(f"tp_errors.{k}" for k in TP_COLUMNS))
+PART_FIELDS = {"train": ("seconds", "to_step"), "eval": ("seconds",)}   # per stage, in wall.jsonl
 
 
 # ---------------------------------------------------------------- reading
 
-def read_json(path: Path):
-    return json.loads(path.read_text()) if path.exists() else None
+def read_json(path: Path, fields: tuple[str, ...] = ()):
+    """The JSON in ``path`` (None when there is no such file), with ``fields`` checked.
+
+    Raises DataError naming the file when it is not JSON or lacks one of ``fields``."""
+    if not path.exists():
+        return None
+    try:
+        obj = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as e:
+        raise DataError(f"{path}: not valid JSON ({e})") from None
+    for name in fields:
+        _require(obj, name, path)
+    return obj
+
+
+def _require(obj, name: str, path: Path) -> None:
+    """DataError unless ``obj`` has the (dotted) field ``name``."""
+    for key in name.split("."):
+        if not isinstance(obj, dict) or key not in obj:
+            raise DataError(f"{path}: lacks the field {name!r}")
+        obj = obj[key]
+
+
+def read_settings(out: Path) -> dict:
+    """OUT/benchmark.json, the benchmark's settings."""
+    settings = read_json(out / "benchmark.json", SETTINGS_FIELDS)
+    if settings is None:
+        raise DataError(f"{out / 'benchmark.json'} is missing: run scripts/benchmark.sh first")
+    return settings
 
 
 def read_parts(path: Path) -> list[dict]:
     """The lines of RUN/wall.jsonl; a line torn by a kill is skipped."""
     parts = []
     if path.exists():
-        for line in path.read_text().splitlines():
+        for i, line in enumerate(path.read_text().splitlines(), 1):
             try:
-                parts.append(json.loads(line))
+                part = json.loads(line)
             except ValueError:
-                pass
+                continue
+            if not isinstance(part, dict):
+                raise DataError(f"{path}: line {i} is not a JSON object")
+            missing = [k for k in PART_FIELDS.get(part.get("stage"), ()) if k not in part]
+            if missing:
+                raise DataError(f"{path}: line {i} lacks the field {missing[0]!r}")
+            parts.append(part)
     return parts
 
 
@@ -66,13 +107,13 @@ def load_run(out: Path, name: str) -> dict:
     """Everything the table needs about one run folder."""
     run = out / name
     variant, _, seed = name.rpartition("_s")
-    info = read_json(run / "run.json")
+    info = read_json(run / "run.json", RUN_FIELDS)
     parts = read_parts(run / "wall.jsonl")
     train = [p for p in parts if p.get("stage") == "train"]
     evals = [p for p in parts if p.get("stage") == "eval"]
     return {
         "name": name, "variant": variant, "seed": int(seed),
-        "summary": read_json(run / "eval" / "metrics_summary.json"),
+        "summary": read_json(run / "eval" / "metrics_summary.json", SUMMARY_FIELDS),
         "info": info,
         "train_s": sum(p["seconds"] for p in train) if train else None,
         "train_parts": len(train),
@@ -90,11 +131,14 @@ def split_sizes(data: Path) -> dict[str, tuple[int, int]] | None:
     splits = read_json(tables / "splits.json")
     if splits is None or not (tables / "sample.json").exists():
         return None
-    scene_name = {s["token"]: s["name"] for s in read_json(tables / "scene.json")}
-    per_scene: dict[str, int] = {}
-    for s in read_json(tables / "sample.json"):
-        per_scene[scene_name[s["scene_token"]]] = per_scene.get(scene_name[s["scene_token"]], 0) + 1
-    return {k: (len(v), sum(per_scene.get(n, 0) for n in v)) for k, v in splits.items()}
+    try:
+        scene_name = {s["token"]: s["name"] for s in read_json(tables / "scene.json")}
+        per_scene: dict[str, int] = {}
+        for s in read_json(tables / "sample.json"):
+            per_scene[scene_name[s["scene_token"]]] = per_scene.get(scene_name[s["scene_token"]], 0) + 1
+        return {k: (len(v), sum(per_scene.get(n, 0) for n in v)) for k, v in splits.items()}
+    except (KeyError, TypeError, AttributeError) as e:
+        raise DataError(f"{tables}: splits.json, scene.json and sample.json do not fit together ({e!r})") from None
 
 
 # ---------------------------------------------------------------- formatting
@@ -133,7 +177,9 @@ def recipe_of(info: dict) -> dict:
     """The settings of a run that must agree across the table: all but the seed, the bookkeeping
     and, when --max-steps sets the length, the unused epoch count."""
     unused = ("seed", *BOOKKEEPING, *(("epochs",) if info["train"].get("max_steps") else ()))
-    train = {k: v for k, v in info["train"].items() if k not in unused}
+    # A field a run predates (image_init) ran at its default, as for the model config.
+    recorded = {**json.loads(json.dumps(dataclasses.asdict(TrainConfig()))), **info["train"]}
+    train = {k: v for k, v in recorded.items() if k not in unused}
     return {"config_name": config_name(info.get("argv", [])), "config": with_defaults(info["config"]), "train": train}
 
 
@@ -154,68 +200,101 @@ def describe_train(train: dict) -> str:
 # ---------------------------------------------------------------- the document
 
 def render(out: Path, run_names: list[str], now: float | None = None) -> str:
-    settings = read_json(out / "benchmark.json")
-    if settings is None:
-        raise FileNotFoundError(f"{out / 'benchmark.json'} is missing: run scripts/benchmark.sh first")
-    steps = settings["steps"]
+    """docs/results.md for the runs ``run_names`` (in table order) of the benchmark folder ``out``;
+    ``now`` (seconds since the epoch) stamps it."""
+    settings = read_settings(out)
     runs = [load_run(out, n) for n in run_names]
-    done = [r for r in runs if r["summary"] is not None]
     started = [r for r in runs if r["info"] is not None]
+    recipes = {r["name"]: recipe_of(r["info"]) for r in started}
+    lines = header_lines(out, runs, now)
+    lines += setup_lines(settings, split_sizes(out / "data"), runs, recipes)
+    lines += runs_lines(runs, settings["steps"])
+    lines += per_class_lines(runs)
+    lines += seed_spread_lines(runs)
+    lines += reproduce_lines(out, settings, run_names)
+    lines += config_lines(recipes)
+    return "\n".join(lines)
+
+
+def header_lines(out: Path, runs: list[dict], now: float | None) -> list[str]:
+    done = sum(r["summary"] is not None for r in runs)
     stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(now))
-    lines = [
+    return [
         "# Results: the benchmark",
         "",
-        f"Written by `scripts/results_table.py` from `{out}` on {stamp}: **{len(done)} of {len(runs)} runs done**. "
+        f"Written by `scripts/results_table.py` from `{out}` on {stamp}: **{done} of {len(runs)} runs done**. "
         "Generated, not edited by hand: `bash scripts/benchmark.sh` completes the missing runs and rewrites it.",
-        "",
-        "## Setup",
         "",
     ]
 
-    # Data: the settings, and the split sizes as the tables have them.
-    sizes = split_sizes(out / "data")
+
+def setup_lines(settings: dict, sizes: dict | None, runs: list[dict], recipes: dict[str, dict]) -> list[str]:
+    """The Setup section: data, recipe (checked to be one), evaluation, machine, code."""
+    started = [r for r in runs if r["info"] is not None]
+    lines = ["## Setup", "", f"- Data: {data_text(settings, sizes)}."]
+    if recipes:
+        lines += recipe_lines(settings["steps"], sizes, started, recipes)
+    else:
+        lines.append(f"- Recipe: the defaults of `clfbev train --config tiny`; no run has started yet. "
+                     f"Step budget: {settings['steps']} optimizer steps per run.")
+    lines.append("- Evaluation: `clfbev eval` on `sim-val`, the devkit's `DetectionEval` restricted to the classes "
+                 "with ground truth (with lidar points) in the split. The attribute is derived from the predicted "
+                 "speed, not learned, so mAAE follows from the velocity.")
+    lines.append(machine_line(runs))
+    lines += [code_line(runs, started), ""]
+    return lines
+
+
+def data_text(settings: dict, sizes: dict | None) -> str:
+    """The dataset's settings, and the split sizes as the tables have them."""
     data = (f"`simgen make`, urban preset: {settings['scenes']} scenes x {settings['samples_per_scene']} key frames "
             f"at {settings['resolution']}, seed {settings['data_seed']}, val fraction {settings['val_fraction']}")
     if sizes:
         data += "; " + ", ".join(f"`{k}` {plural(sc, 'scene')} ({plural(sa, 'sample')})" for k, (sc, sa) in sizes.items())
-    lines.append(f"- Data: {data}.")
+    return data
 
-    # Recipe: read from run.json, and checked to be one recipe for every run.
-    recipes = {r["name"]: recipe_of(r["info"]) for r in started}
-    if recipes:
-        first_name, first = next(iter(recipes.items()))
-        tr = first["train"]
-        samples = steps * tr["batch_size"] * (started[0]["info"].get("world_size") or 1)
-        epochs = f", {samples / sizes['sim-train'][1]:.1f} epochs of `sim-train`" if sizes and sizes.get("sim-train") else ""
-        shown = {k: v for k, v in tr.items() if k not in PER_VARIANT}
-        per_variant = "; ".join(
-            f"`{k}` " + ", ".join(f"{v} ({', '.join(vs)})" for v, vs in values_by_variant(started, k).items())
-            for k in PER_VARIANT if k in tr)
-        lines.append(f"- Recipe: the defaults of `clfbev train --config {first['config_name']}` (model config "
-                     f"`{first['config_name']}`), the same for every run of a variant but the seed. From `run.json`: "
-                     f"`{describe_train(shown)}`; per variant: {per_variant or 'nothing'}.")
-        lines.append(f"- Step budget: {steps} optimizer steps per run ({samples} samples{epochs}). No validation while "
-                     "training (`--val-split ''`), so nothing is selected on `sim-val`: the evaluated checkpoint is "
-                     "`last.pt`, the weights after the last step.")
-        differ = []
-        variant_of = {r["name"]: r["variant"] for r in started}
-        for name, rec in recipes.items():
-            # Against the first run of its variant for the per-variant fields, the first run for the rest.
-            twin = recipes[next(n for n in recipes if variant_of[n] == variant_of[name])]
-            keys = [k for k in {**first["train"], **rec["train"]}
-                    if rec["train"].get(k) != (twin if k in PER_VARIANT else first)["train"].get(k)]
-            keys += ["model config"] if rec["config"] != first["config"] or rec["config_name"] != first["config_name"] else []
-            if keys:
-                differ.append(f"`{name}` ({', '.join(keys)})")
-        if differ:
-            lines.append(f"- **Not one recipe:** these runs differ from `{first_name}`: {', '.join(differ)}. "
-                         "Their rows are not comparable; rerun them in a fresh OUT.")
-    else:
-        lines.append(f"- Recipe: the defaults of `clfbev train --config tiny`; no run has started yet. "
-                     f"Step budget: {steps} optimizer steps per run.")
-    lines.append("- Evaluation: `clfbev eval` on `sim-val`, the devkit's `DetectionEval` restricted to the classes "
-                 "with ground truth (with lidar points) in the split. The attribute is derived from the predicted "
-                 "speed, not learned, so mAAE follows from the velocity.")
+
+def recipe_lines(steps: int, sizes: dict | None, started: list[dict], recipes: dict[str, dict]) -> list[str]:
+    """The recipe as run.json has it, the step budget, and the runs whose recipe differs."""
+    first_name, first = next(iter(recipes.items()))
+    tr = first["train"]
+    samples = steps * tr["batch_size"] * (started[0]["info"].get("world_size") or 1)
+    epochs = f", {samples / sizes['sim-train'][1]:.1f} epochs of `sim-train`" if sizes and sizes.get("sim-train") else ""
+    shown = {k: v for k, v in tr.items() if k not in PER_VARIANT}
+    per_variant = "; ".join(
+        f"`{k}` " + ", ".join(f"{v} ({', '.join(vs)})" for v, vs in values_by_variant(started, k).items())
+        for k in PER_VARIANT if k in tr)
+    lines = [f"- Recipe: the defaults of `clfbev train --config {first['config_name']}` (model config "
+             f"`{first['config_name']}`), the same for every run of a variant but the seed. From `run.json`: "
+             f"`{describe_train(shown)}`; per variant: {per_variant or 'nothing'}.",
+             f"- Step budget: {steps} optimizer steps per run ({samples} samples{epochs}). No validation while "
+             "training (`--val-split ''`), so nothing is selected on `sim-val`: the evaluated checkpoint is "
+             "`last.pt`, the weights after the last step."]
+    differ = recipe_differences(started, recipes)
+    if differ:
+        lines.append(f"- **Not one recipe:** these runs differ from `{first_name}`: {', '.join(differ)}. "
+                     "Their rows are not comparable; rerun them in a fresh OUT.")
+    return lines
+
+
+def recipe_differences(started: list[dict], recipes: dict[str, dict]) -> list[str]:
+    """```name` (fields)`` of each run whose recipe differs: the per-variant fields against the first
+    run of its variant, the rest against the first run."""
+    first = next(iter(recipes.values()))
+    variant_of = {r["name"]: r["variant"] for r in started}
+    differ = []
+    for name, rec in recipes.items():
+        twin = recipes[next(n for n in recipes if variant_of[n] == variant_of[name])]
+        keys = [k for k in {**first["train"], **rec["train"]}
+                if rec["train"].get(k) != (twin if k in PER_VARIANT else first)["train"].get(k)]
+        keys += ["model config"] if rec["config"] != first["config"] or rec["config_name"] != first["config_name"] else []
+        if keys:
+            differ.append(f"`{name}` ({', '.join(keys)})")
+    return differ
+
+
+def machine_line(runs: list[dict]) -> str:
+    """The cores and torch threads the parts recorded, and the wall time in all."""
     threads = sorted({t for r in runs for t in r["threads"]})
     cores = sorted({c for r in runs for c in r["cores"]})
     total = sum((r["train_s"] or 0) + (r["eval_s"] or 0) for r in runs)
@@ -225,22 +304,26 @@ def render(out: Path, run_names: list[str], now: float | None = None) -> str:
                    f"{per_run} (fewer than the cores when runs shared them). ")
     else:       # parts written before the cores were recorded: THREADS was nproc then
         machine = f"{', '.join(map(str, threads)) or '?'} CPU cores (`nproc`), all used as torch threads. "
-    lines.append(f"- Machine: {machine}"
-                 "Wall time: training (every part of a resumed run, an interrupted part included, so steps "
-                 "recomputed after a resume count twice; only a part killed together with the script is missing) "
-                 f"and evaluation, in minutes; {total / 3600:.1f} h in all.")
-    ends = sorted(e for r in runs for e in r["ends"])
-    days = sorted({e[:10] for e in ends})
+    return (f"- Machine: {machine}"
+            "Wall time: training (every part of a resumed run, an interrupted part included, so steps "
+            "recomputed after a resume count twice; only a part killed together with the script is missing) "
+            f"and evaluation, in minutes; {total / 3600:.1f} h in all.")
+
+
+def code_line(runs: list[dict], started: list[dict]) -> str:
+    """The code version of each run (one when all agree) and the days the parts ended."""
+    days = sorted({e[:10] for r in runs for e in r["ends"]})
     when = "" if not days else f", run on {days[0]}" if len(days) == 1 else f", run from {days[0]} to {days[-1]}"
     versions = {r["name"]: r["info"].get("code_version", "?") for r in started}
     if len(set(versions.values())) == 1:
         code = f"`{next(iter(versions.values()))}`"
     else:
         code = ", ".join(f"`{n}` `{v}`" for n, v in versions.items()) or "?"
-    lines += [f"- Code: {code} (`run.json`'s code_version){when}.", ""]
+    return f"- Code: {code} (`run.json`'s code_version){when}."
 
-    # The main table: one row per run, pending ones included.
-    lines += ["## Runs (sim-val)", ""]
+
+def runs_lines(runs: list[dict], steps: int) -> list[str]:
+    """The main table: one row per run, pending ones included."""
     rows = []
     for r in runs:
         s = r["summary"]
@@ -254,58 +337,65 @@ def render(out: Path, run_names: list[str], now: float | None = None) -> str:
             metrics = [state, *[""] * (1 + len(TP_COLUMNS))]
         train_s = minutes(r["train_s"]) + (f" ({r['train_parts']} parts)" if r["train_parts"] > 1 else "")
         rows.append([f"`{r['name']}`", r["variant"], str(r["seed"]), str(ran), *metrics, train_s, minutes(r["eval_s"])])
-    lines += table(["run", "variant", "seed", "steps", "mAP", "NDS", *TP_COLUMNS.values(), "train min", "eval min"],
-                   rows, right_from=2)
-    lines.append("")
+    header = ["run", "variant", "seed", "steps", "mAP", "NDS", *TP_COLUMNS.values(), "train min", "eval min"]
+    return ["## Runs (sim-val)", "", *table(header, rows, right_from=2), ""]
 
-    # Per-class AP: the classes the devkit evaluated (those with GT in the split), in its order.
+
+def per_class_lines(runs: list[dict]) -> list[str]:
+    """Per-class AP of the classes the devkit evaluated (those with GT in the split), in its order."""
+    done = [r for r in runs if r["summary"] is not None]
+    if not done:
+        return []
     classes: list[str] = []
     for r in done:
         classes += [c for c in r["summary"]["mean_dist_aps"] if c not in classes]
-    if done:
-        lines += ["## Per-class AP (sim-val)", ""]
-        rows = []
-        for r in runs:
-            aps = r["summary"]["mean_dist_aps"] if r["summary"] else None
-            rows.append([f"`{r['name']}`", *([num(aps.get(c), 3) if c in aps else "" for c in classes] if aps
-                                            else ["pending", *[""] * (len(classes) - 1)])])
-        lines += table(["run", *classes], rows, right_from=1)
-        missing = [c for c in DETECTION_CLASSES if c not in classes]
-        if missing:
-            lines += ["", f"Not evaluated (no ground truth with lidar points in `sim-val`, or not generated): "
-                          f"{', '.join(missing)}."]
-        lines.append("")
+    rows = []
+    for r in runs:
+        aps = r["summary"]["mean_dist_aps"] if r["summary"] else None
+        rows.append([f"`{r['name']}`", *([num(aps.get(c), 3) if c in aps else "" for c in classes] if aps
+                                        else ["pending", *[""] * (len(classes) - 1)])])
+    lines = ["## Per-class AP (sim-val)", "", *table(["run", *classes], rows, right_from=1)]
+    missing = [c for c in DETECTION_CLASSES if c not in classes]
+    if missing:
+        lines += ["", f"Not evaluated (no ground truth with lidar points in `sim-val`, or not generated): "
+                      f"{', '.join(missing)}."]
+    return [*lines, ""]
 
-    # Seed spread: variants with more than one seed.
+
+def seed_spread_lines(runs: list[dict]) -> list[str]:
+    """Mean ± half the range of mAP and NDS over the seeds of each variant run with several."""
     by_variant: dict[str, list[dict]] = {}
     for r in runs:
         by_variant.setdefault(r["variant"], []).append(r)
     multi = {v: rs for v, rs in by_variant.items() if len(rs) > 1}
-    if multi:
-        lines += ["## Seed spread", "",
-                  "Mean ± half the range over the seeds, and the spread (max - min): the part of a difference "
-                  "between variants that one seed's luck can explain.", ""]
-        rows = []
-        for v, rs in multi.items():
-            seeds = ", ".join(str(r["seed"]) for r in rs)
-            ok = [r["summary"] for r in rs if r["summary"] is not None]
-            if len(ok) < len(rs):
-                rows.append([v, seeds, f"pending ({len(ok)} of {len(rs)} seeds done)", "", "", ""])
-                continue
-            cells = []
-            for key in ("mean_ap", "nd_score"):
-                m, h = mean_half_range([s[key] for s in ok])
-                cells.append(f"{m:.4f} ± {h:.4f}")
-            cells += [f"{2 * mean_half_range([s[k] for s in ok])[1]:.4f}" for k in ("mean_ap", "nd_score")]
-            rows.append([v, seeds, *cells])
-        lines += table(["variant", "seeds", "mAP", "NDS", "mAP spread", "NDS spread"], rows, right_from=2)
-        lines.append("")
+    if not multi:
+        return []
+    rows = []
+    for v, rs in multi.items():
+        seeds = ", ".join(str(r["seed"]) for r in rs)
+        ok = [r["summary"] for r in rs if r["summary"] is not None]
+        if len(ok) < len(rs):
+            rows.append([v, seeds, f"pending ({len(ok)} of {len(rs)} seeds done)", "", "", ""])
+            continue
+        cells = []
+        for key in ("mean_ap", "nd_score"):
+            m, h = mean_half_range([s[key] for s in ok])
+            cells.append(f"{m:.4f} ± {h:.4f}")
+        cells += [f"{2 * mean_half_range([s[k] for s in ok])[1]:.4f}" for k in ("mean_ap", "nd_score")]
+        rows.append([v, seeds, *cells])
+    return ["## Seed spread", "",
+            "Mean ± half the range over the seeds, and the spread (max - min): the part of a difference "
+            "between variants that one seed's luck can explain.", "",
+            *table(["variant", "seeds", "mAP", "NDS", "mAP spread", "NDS spread"], rows, right_from=2), ""]
 
-    # The commands: the benchmark's invocation with every knob spelled out, and what it runs.
+
+def reproduce_lines(out: Path, settings: dict, run_names: list[str]) -> list[str]:
+    """The commands: the benchmark's invocation with every knob spelled out, and what it runs."""
+    steps = settings["steps"]
     knobs = (f"SCENES={settings['scenes']} SAMPLES={settings['samples_per_scene']} RES={settings['resolution']} "
              f"STEPS={steps}" + ("" if str(out) == "benchmark_out" else f" OUT={out}"))
     data_dir = f"{out}/data"
-    lines += [
+    return [
         "## Reproduce",
         "",
         "```bash",
@@ -322,12 +412,16 @@ def render(out: Path, run_names: list[str], now: float | None = None) -> str:
         "```",
         "",
     ]
-    if recipes:
-        # One line per field, the form of a `--config` YAML file of overrides.
-        lines += [f"<details><summary>The model config <code>{first['config_name']}</code> (from run.json)</summary>",
-                  "", "```yaml", *(f"{k}: {json.dumps(v)}" for k, v in first["config"].items()), "```", "",
-                  "</details>", ""]
-    return "\n".join(lines)
+
+
+def config_lines(recipes: dict[str, dict]) -> list[str]:
+    """The first run's model config, one line per field: the form of a `--config` YAML file."""
+    if not recipes:
+        return []
+    first = next(iter(recipes.values()))
+    return [f"<details><summary>The model config <code>{first['config_name']}</code> (from run.json)</summary>",
+            "", "```yaml", *(f"{k}: {json.dumps(v)}" for k, v in first["config"].items()), "```", "",
+            "</details>", ""]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -336,20 +430,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", nargs="+", required=True, help="run names, in table order (VARIANT_sSEED)")
     ap.add_argument("--out", dest="results", type=Path, default=Path("docs/results.md"), help="markdown to write")
     args = ap.parse_args(argv)
-    bad = [n for n in args.runs if not n.rpartition("_s")[2].isdigit()]
+    return run_guarded(lambda: write_table(args.out, args.runs, args.results), prog="results_table")
+
+
+def write_table(out: Path, run_names: list[str], results: Path) -> None:
+    """Render the table of ``run_names`` in ``out`` and replace ``results`` with it."""
+    bad = [n for n in run_names if not n.rpartition("_s")[2].isdigit()]
     if bad:
-        print(f"results_table: run names must be VARIANT_sSEED, got {', '.join(bad)}", file=sys.stderr)
-        return 2
-    try:
-        text = render(args.out, args.runs)
-    except FileNotFoundError as e:
-        print(f"results_table: {e}", file=sys.stderr)
-        return 2
-    args.results.parent.mkdir(parents=True, exist_ok=True)
-    atomic.write_text(args.results, text)
-    n_done = sum((args.out / n / "eval" / "metrics_summary.json").exists() for n in args.runs)
-    print(f"benchmark: table {args.results} ({n_done} of {len(args.runs)} runs done)")
-    return 0
+        raise ConfigError(f"--runs: run names must be VARIANT_sSEED, got {', '.join(bad)}")
+    text = render(out, run_names)
+    io.write_text(results, text)
+    n_done = sum((out / n / "eval" / "metrics_summary.json").exists() for n in run_names)
+    print(f"benchmark: table {results} ({n_done} of {len(run_names)} runs done)")
 
 
 if __name__ == "__main__":

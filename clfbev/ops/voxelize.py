@@ -4,8 +4,8 @@ Pure torch and fully vectorised (one stable sort of the voxel keys), so it runs 
 and CUDA.
 
 Hard voxelization (a fixed budget of P points per voxel, as in VoxelNet / SECOND) throws points
-away: with 0.4 m voxels and 3 sweeps, P = 10 dropped about half of an urban sample's points, and
-mostly the older sweeps' (the first P in input order survive), i.e. the motion cue velocity needs.
+away, and mostly the older sweeps' (the first P in input order survive), i.e. the motion cue
+velocity needs.
 Dynamic voxelization (Zhou et al. 2019, "End-to-end multi-view fusion"; mmdet3d's
 ``DynamicVFE``) keeps a point -> voxel map instead, and the VFE max-pools over all of a voxel's
 points with a scatter. The only cap left is ``max_voxels`` per sample, a memory bound; which
@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+from clfbev.settings import grid_shape_of
 
 
 @dataclass(frozen=True)
@@ -43,20 +45,6 @@ class PointVoxels:
     coords: Tensor
     num_points: Tensor
     grid_shape: tuple[int, int, int]
-
-
-def grid_shape_of(pc_range: tuple[float, ...], voxel_size: tuple[float, ...]) -> tuple[int, int, int]:
-    """Grid size (nz, ny, nx) for a range (xmin, ymin, zmin, xmax, ymax, zmax) and voxel (dx, dy, dz).
-
-    Rounded, not floored, so that e.g. a 102.4 m range over 0.1 m voxels gives 1024 despite
-    floating-point error.
-    """
-    if len(pc_range) != 6 or len(voxel_size) != 3:
-        raise ValueError(f"pc_range needs 6 values and voxel_size 3, got {pc_range}, {voxel_size}")
-    n_xyz = [int(round((pc_range[i + 3] - pc_range[i]) / voxel_size[i])) for i in range(3)]
-    if min(n_xyz) < 1:
-        raise ValueError(f"empty voxel grid for pc_range={pc_range}, voxel_size={voxel_size}")
-    return n_xyz[2], n_xyz[1], n_xyz[0]
 
 
 def voxelize(

@@ -1,4 +1,5 @@
-"""Training checkpoints: written atomically, read with ``torch.load(weights_only=True)``.
+"""Training checkpoints: written atomically (:func:`clfbev.io.save_torch`), read with
+``torch.load(weights_only=True)``.
 
 A checkpoint is a plain dict of tensors and Python scalars/strings/lists (nothing pickled that
 ``weights_only`` would refuse):
@@ -9,74 +10,81 @@ A checkpoint is a plain dict of tensors and Python scalars/strings/lists (nothin
 - ``step``, ``epoch`` (epochs fully done), ``best_nds``, ``torch_rng`` (CPU generator state);
 - ``code_version``.
 
-Loading checks that the file is a checkpoint of this format and, where asked, that its config
-and variant are the expected ones; every failure is a :class:`CheckpointError` naming the file.
+Loading checks that the file is a checkpoint of this format with fields of the right kind and,
+where asked, that its config and variant are the expected ones; every failure is a
+:class:`CheckpointError` naming the file. :class:`Checkpoints` writes a run's ``last.pt`` and
+``best.pt`` and knows when the next is due.
 """
 
 from __future__ import annotations
 
-import os
-import pickle
-import tempfile
-import zipfile
+import time
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
 
-from clfbev.config import ModelConfig, config_from_dict
+from clfbev import io
+from clfbev.config import VARIANTS, ModelConfig, config_from_dict
+from clfbev.errors import CheckpointError, ConfigError
 from clfbev.model import CLFusionBEV
+from clfbev.run.train_config import TrainConfig
 
 FORMAT = "clfbev-checkpoint-v1"
 REQUIRED = ("format", "model", "config", "variant", "step", "epoch")
-
-
-class CheckpointError(ValueError):
-    """An unusable checkpoint: missing, corrupt, or of another config/variant."""
+# What a resume reads besides REQUIRED (a checkpoint written for evaluation only may lack them).
+RESUME_FIELDS = ("optimizer", "train", "best_nds", "torch_rng")
 
 
 def save_checkpoint(path: str | Path, state: dict) -> Path:
     """Write ``state`` (a dict as in the module docstring, without ``format``) to ``path``
-    atomically: a temporary file in the same folder, fsync'ed, then renamed over ``path``. A
-    crash at any moment leaves either the old file or the new one, never a torn one."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save({"format": FORMAT, **state}, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    atomically: a crash at any moment leaves either the old file or the new one."""
+    return io.save_torch(path, {"format": FORMAT, **state})
 
 
-def load_checkpoint(path: str | Path) -> dict:
-    """The checkpoint dict at ``path`` (on the CPU), loaded with ``weights_only=True``."""
+def load_checkpoint(path: str | Path, required: tuple[str, ...] = REQUIRED) -> dict:
+    """The checkpoint dict at ``path`` (on the CPU), loaded with ``weights_only=True``, holding at
+    least the fields ``required``."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except (RuntimeError, EOFError, OSError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError) as e:
+    except Exception as e:
+        # Any bytes may be in a file the user names, and the unpickler fails on them as it may
+        # (KeyError for text, EOFError or RuntimeError when truncated, UnpicklingError, ...).
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({first})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {path} is not a {FORMAT} file")
-    missing = [k for k in REQUIRED if k not in ckpt]
+    missing = [k for k in required if k not in ckpt]
     if missing:
         raise CheckpointError(f"checkpoint {path} lacks the fields {missing}")
+    _check_fields(ckpt, path)
     return ckpt
+
+
+def _check_fields(ckpt: dict, path: Path) -> None:
+    """Refuse fields of the wrong kind: the weights not a mapping of finite tensors, an unknown
+    variant, a step or epoch that is not a count."""
+    weights = ckpt["model"]
+    if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor) for v in weights.values()):
+        raise CheckpointError(f"checkpoint {path}: field 'model' is not a state dict of tensors")
+    bad = next((k for k, v in weights.items() if v.is_floating_point() and not torch.isfinite(v).all()), None)
+    if bad is not None:
+        raise CheckpointError(f"checkpoint {path}: the weights '{bad}' hold non-finite values")
+    if ckpt["variant"] not in VARIANTS:
+        raise CheckpointError(f"checkpoint {path}: field 'variant' is {ckpt['variant']!r}, not one of {VARIANTS}")
+    for key in ("step", "epoch"):
+        if isinstance(ckpt[key], bool) or not isinstance(ckpt[key], int) or ckpt[key] < 0:
+            raise CheckpointError(f"checkpoint {path}: field '{key}' is {ckpt[key]!r}, not a count")
 
 
 def config_of(ckpt: dict, path: str | Path) -> ModelConfig:
     """The :class:`ModelConfig` a checkpoint was trained with."""
     try:
         return config_from_dict(ckpt["config"], f"{path} (config)")
-    except ValueError as e:
+    except ConfigError as e:
         raise CheckpointError(str(e)) from None
 
 
@@ -107,3 +115,29 @@ def load_model(path: str | Path, cfg: ModelConfig | None = None, variant: str | 
         first = str(e).strip().splitlines()[0]
         raise CheckpointError(f"checkpoint {path}: weights do not fit its config ({first})") from None
     return model.to(device).eval(), ckpt
+
+
+class Checkpoints:
+    """``RUN/last.pt`` and ``RUN/best.pt`` of one run (rank 0 writes them), and when the next
+    ``last.pt`` is due: every ``save_every_steps`` steps and every ``ckpt_minutes``."""
+
+    def __init__(self, run: Path, cfg: ModelConfig, variant: str, tc: TrainConfig, version: str) -> None:
+        self.last, self.best = run / "last.pt", run / "best.pt"
+        self.cfg, self.variant, self.tc, self.version = cfg, variant, tc, version
+        self.saved_at = time.monotonic()
+
+    def save(self, path: Path, state) -> None:
+        """Write ``state`` (a :class:`clfbev.run.train.TrainState`: model, optimizer, step, epoch,
+        best NDS) with the run's settings, code version and the torch RNG state to ``path``."""
+        save_checkpoint(path, {
+            "model": state.model.state_dict(), "optimizer": state.opt.state_dict(), "config": self.cfg.to_dict(),
+            "variant": self.variant, "train": asdict(self.tc), "step": state.step, "epoch": state.epoch,
+            "best_nds": state.best_nds, "torch_rng": torch.get_rng_state(), "code_version": self.version,
+        })
+        if path == self.last:
+            self.saved_at = time.monotonic()
+
+    def due(self, step: int) -> bool:
+        """Whether ``last.pt`` is due after step ``step``."""
+        timed = time.monotonic() - self.saved_at > self.tc.ckpt_minutes * 60
+        return bool(self.tc.save_every_steps and step % self.tc.save_every_steps == 0) or timed

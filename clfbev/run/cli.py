@@ -1,6 +1,9 @@
-"""`clfbev train | eval | predict | show | robustness`: the detector's command line.
+"""`clfbev train | pretrain | eval | predict | show | robustness`: the detector's command line, and its only
+entry point (the ``clfbev`` script, ``python -m clfbev``, and what torchrun starts on each rank).
 
     clfbev train   --data DIR --config tiny --variant full --out RUN [--epochs N | --max-steps N] [--resume]
+    torchrun --nproc_per_node 2 -m clfbev train --data DIR --out RUN ...          (DDP)
+    clfbev pretrain --data DIR --config tiny --out RUN [--max-steps N] [--resume]   (camera encoder, dense labels)
     clfbev eval    --data DIR --ckpt RUN/best.pt [--split sim-val] --out DIR
     clfbev predict --data DIR --ckpt CKPT --out results.json [--split all]
     clfbev show    --data DIR --results results.json [--sample I] --out FILE.png [--attention --ckpt CKPT [--cell X,Y]]
@@ -8,37 +11,37 @@
 
 Bad input (a missing dataroot, an unknown split, a corrupt or mismatched checkpoint, an invalid
 config file, an unwritable output) gets one line on stderr naming the file or option, and exit
-code 2. A non-finite training loss stops training with exit code 3, keeping the last checkpoint.
+code 2 (:func:`clfbev.errors.run_guarded`). A non-finite training loss stops training with exit
+code 3, keeping the last checkpoint.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
-import sys
+from dataclasses import replace
 from pathlib import Path
 
-EXIT_BAD_INPUT = 2
-EXIT_TRAIN_FAILED = 3
+import cv2
+import numpy as np
+import torch
 
-
-def run_guarded(fn) -> int:
-    """Run ``fn()``; map the project's input errors to one stderr line and exit code 2."""
-    from clfbev.checkpoint import CheckpointError
-    from clfbev.data import DataError
-    from clfbev.train import TrainError
-    try:
-        fn()
-        return 0
-    except (DataError, CheckpointError, ValueError, PermissionError, NotADirectoryError, IsADirectoryError, FileExistsError) as e:
-        print(f"clfbev: error: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except TrainError as e:
-        print(f"clfbev: error: {e}", file=sys.stderr)
-        return EXIT_TRAIN_FAILED
-    except KeyboardInterrupt:
-        print("clfbev: interrupted; `clfbev train ... --resume` continues from the last checkpoint", file=sys.stderr)
-        return 130
+from clfbev import io
+from clfbev.config import VARIANTS, load_config
+from clfbev.corruptions import parse as parse_corruption
+from clfbev.data import NuScenesDetection, collate, load_nuscenes
+from clfbev.errors import ConfigError, DataError, OutputError, run_guarded
+from clfbev.run import robustness
+from clfbev.run.attention_plot import draw_attention
+from clfbev.run.attention_query import attention_modules
+from clfbev.run.checkpoint import load_model
+from clfbev.run.evaluate import EVAL_SCORE_THR, evaluate_model, predict_split, write_results
+from clfbev.run.pretrain import PretrainConfig, final_loss, pretrain
+from clfbev.run.sheets import check_records, load_results, sample_sheet
+from clfbev.run.train import train
+from clfbev.run.train_config import (VERSION, add_setting_options, add_train_arguments, settings_from,
+                                     train_config_from, whole_number)
 
 
 def check_writable(out: Path, is_file: bool = False) -> None:
@@ -47,24 +50,23 @@ def check_writable(out: Path, is_file: bool = False) -> None:
     p = Path(out).resolve()
     if is_file:
         if p.is_dir():
-            raise IsADirectoryError(f"--out {out} is a directory, expected a file path")
+            raise OutputError(f"--out {out} is a directory, expected a file path")
         p = p.parent
     while not p.exists():
         p = p.parent
     if not p.is_dir():
-        raise NotADirectoryError(f"--out {out}: {p} is not a directory")
+        raise OutputError(f"--out {out}: {p} is not a directory")
     if not os.access(p, os.W_OK | os.X_OK):
-        raise PermissionError(f"--out {out}: {p} is not writable")
+        raise OutputError(f"--out {out}: {p} is not writable")
 
 
 def _device():
-    import torch
+    """The GPU when there is one."""
     return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
 def _load(args):
-    from clfbev.checkpoint import load_model
-    from clfbev.config import load_config
+    """(model, checkpoint) of --ckpt, refused unless of --config / --variant where given."""
     cfg = load_config(args.config) if args.config else None
     return load_model(args.ckpt, cfg, args.variant, device=_device())
 
@@ -72,22 +74,43 @@ def _load(args):
 # ---------------------------------------------------------------- commands
 
 def cmd_train(args) -> None:
-    from clfbev.train import run_from_args
+    """Train into --out (see clfbev.run.train); rank 0 prints the summary."""
     check_writable(args.out)
-    run_from_args(args)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cfg = load_config(args.config)
+    if args.no_depth_loss:
+        cfg = replace(cfg, loss=replace(cfg.loss, depth=0.0))
+    summary = train(args.data, args.out, cfg, args.variant, train_config_from(args), resume=args.resume,
+                    progress=not args.quiet)
+    if int(os.environ.get("RANK", "0")) == 0:
+        best = f", best val NDS {summary['best_nds']:.4f}" if summary["best_nds"] >= 0 else ""
+        # A resumed run that was already finished trains no step, so it has no loss of its own.
+        loss = f", final loss {summary['loss']:.4f}" if math.isfinite(summary["loss"]) else " (nothing left to train)"
+        print(f"trained {summary['steps']} steps{loss}{best}; checkpoints in {args.out}")
+
+
+def cmd_pretrain(args) -> None:
+    """Pretrain the camera encoder into --out (see clfbev.run.pretrain)."""
+    check_writable(args.out)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    summary = pretrain(args.data, args.out, load_config(args.config), settings_from(args, PretrainConfig()),
+                       resume=args.resume, progress=not args.quiet)
+    print(f"pretrained {summary['steps']} steps, {final_loss(summary)}; encoder checkpoint {summary['encoder']} "
+          f"(clfbev train --image-init {summary['encoder']})")
 
 
 def cmd_eval(args) -> None:
-    from clfbev.data import NuScenesDetection
-    from clfbev.evaluate import evaluate, predict_split, write_results
+    """--ckpt on --split through the devkit; the per-class table on stdout."""
     check_writable(args.out)
     model, _ = _load(args)
     ds = NuScenesDetection(args.data, args.version, args.split, model.cfg.data_config(), args.corrupt)
-    results = predict_split(model, ds, batch_size=args.batch_size, score_thr=args.score_thr)
-    path = write_results(Path(args.out) / "results.json", results)
-    summary = evaluate(ds.nusc, path, args.split, args.out, model.cfg.class_names, plots=not args.no_plots)
+    summary = evaluate_model(model, ds, args.out, batch_size=args.batch_size, score_thr=args.score_thr,
+                             plots=not args.no_plots)
     print(format_summary(summary))
-    print(f"wrote {path} and the devkit's metrics_summary.json / metrics_details.json to {args.out}")
+    print(f"wrote {Path(args.out) / 'results.json'} and the devkit's metrics_summary.json / metrics_details.json "
+          f"to {args.out}")
 
 
 def format_summary(summary: dict) -> str:
@@ -102,17 +125,18 @@ def format_summary(summary: dict) -> str:
 
 
 def _named_paths(items: list[str], flag: str) -> list[tuple[str, Path]]:
+    """['NAME=PATH', ...] of option ``flag`` -> [(name, path), ...]."""
     out = []
     for item in items:
         name, sep, path = item.partition("=")
         if not sep or not name or not path:
-            raise ValueError(f"{flag} {item}: expected NAME=PATH")
+            raise ConfigError(f"{flag} {item}: expected NAME=PATH")
         out.append((name, Path(path)))
     return out
 
 
 def cmd_robustness(args) -> None:
-    from clfbev import robustness
+    """Every --ckpt on every --set and --corrupt condition; the report in --out."""
     check_writable(args.out)
     ckpts = _named_paths(args.ckpt, "--ckpt")
     conditions = robustness.conditions_of(_named_paths(args.set, "--set"), args.corrupt, args.version)
@@ -124,8 +148,7 @@ def cmd_robustness(args) -> None:
 
 
 def cmd_predict(args) -> None:
-    from clfbev.data import NuScenesDetection
-    from clfbev.evaluate import predict_split, write_results
+    """The results JSON of --ckpt on --split, with no evaluation (any dataroot)."""
     check_writable(args.out, is_file=True)
     model, _ = _load(args)
     ds = NuScenesDetection(args.data, args.version, args.split, model.cfg.data_config())
@@ -136,10 +159,7 @@ def cmd_predict(args) -> None:
 
 
 def cmd_show(args) -> None:
-    import cv2
-    import numpy as np
-    from clfbev.data import DataError, load_nuscenes
-    from clfbev.visualize import load_results, sample_sheet
+    """The sheet of one sample (and, with --attention, the attention strip below it) as an image."""
 
     check_writable(args.out, is_file=True)
     model = _attention_model(args) if args.attention else None   # a bad checkpoint fails before any drawing
@@ -149,98 +169,136 @@ def cmd_show(args) -> None:
     if not tokens:
         raise DataError(f"{args.results} has no sample of {Path(args.data) / args.version}")
     if not 0 <= args.sample < len(tokens):
-        raise ValueError(f"--sample {args.sample}: {args.results} covers {len(tokens)} samples (0..{len(tokens) - 1})")
+        raise ConfigError(f"--sample {args.sample}: {args.results} covers {len(tokens)} samples (0..{len(tokens) - 1})")
     token = tokens[args.sample]
-    sheet = sample_sheet(nusc, token, results[token], args.score_thr)
+    sheet = sample_sheet(nusc, token, check_records(args.results, token, results[token]), args.score_thr)
     if model is not None:
         sheet = np.concatenate([sheet, _attention_strip(args, model, token, sheet.shape[1])], 0)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.stem}.tmp{out.suffix}")
-    if not cv2.imwrite(str(tmp), sheet):
-        raise ValueError(f"--out {out}: cannot write an image with that extension")
-    tmp.replace(out)
-    print(f"wrote {out}")
+    io.write_image(args.out, sheet)
+    print(f"wrote {args.out}")
 
 
 def _attention_model(args):
-    """The model of --ckpt; ValueError (exit 2) if there is none or it has no attention module:
+    """The model of --ckpt; ConfigError (exit 2) if there is none or it has no attention module:
     --attention asks for a picture that such a variant cannot give, so it is refused, not skipped."""
-    from clfbev.visualize import attention_modules
     if not args.ckpt:
-        raise ValueError("--attention needs --ckpt (the model whose attention is drawn)")
+        raise ConfigError("--attention needs --ckpt (the model whose attention is drawn)")
     model, _ = _load(args)
     if not attention_modules(model):
-        raise ValueError(f"--attention: {args.ckpt} is of variant '{model.variant}', which has no MCM or BSM "
-                         "attention (the 'mcm' and 'full' variants have)")
+        raise ConfigError(f"--attention: {args.ckpt} is of variant '{model.variant}', which has no MCM or BSM "
+                          "attention (the 'mcm' and 'full' variants have)")
     return model
 
 
 def _attention_strip(args, model, token: str, width: int):
     """The MCM / BSM attention strip of sample ``token``, ``width`` pixels wide (BGR)."""
-    from clfbev.data import NuScenesDetection, collate
-    from clfbev.visualize import draw_attention
     ds = NuScenesDetection(args.data, args.version, "all", model.cfg.data_config())
     batch = collate([ds[ds.sample_tokens.index(token)]]).to(_device())
     return draw_attention(model, batch, width, args.score_thr, args.cell)
 
 
+# ---------------------------------------------------------------- option types (argparse exits 2 naming them)
+
 def _xy(text: str) -> tuple[float, float]:
-    """'X,Y' metres -> (x, y); an argparse type, so a malformed value exits 2 naming it."""
+    """'X,Y' metres -> (x, y)."""
     try:
         x, y = (float(v) for v in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected X,Y in metres (e.g. 10,-5), got {text!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise argparse.ArgumentTypeError(f"expected finite X,Y in metres, got {text!r}")
     return x, y
 
 
-# ---------------------------------------------------------------- parser
+def _score(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a score in [0, 1], got {text!r}")
+    return value
+
+
+def _image_path(text: str) -> Path:
+    """An output image path whose suffix OpenCV can encode."""
+    if not cv2.haveImageWriter(text):
+        raise argparse.ArgumentTypeError(f"cannot write an image named {text!r}; use .png or .jpg")
+    return Path(text)
+
 
 CORRUPT_HELP = ("beam_missing:1-32 | density:0-1 | fov:DEGREES | lidar_missing | camera_crash:1-6 | "
                 "frame_lost:0-1 | extrinsic_noise:DEG (deterministic per sample token)")
 
 
 def _corruption(text: str):
-    from clfbev.corruptions import parse
     try:
-        return parse(text)
+        return parse_corruption(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from clfbev.config import VARIANTS
-    from clfbev.evaluate import EVAL_SCORE_THR
-    from clfbev.train import VERSION, add_arguments
+# ---------------------------------------------------------------- parser
 
-    ap = argparse.ArgumentParser(prog="clfbev", description="CL-FusionBEV: camera + lidar BEV fusion detector "
-                                 "(train, evaluate with the official nuScenes metrics, predict, visualise).")
-    sub = ap.add_subparsers(dest="command", required=True)
+def _model_args(p: argparse.ArgumentParser, ckpt_required: bool = True) -> None:
+    """The options of the commands that run a checkpoint on a dataroot."""
+    p.add_argument("--data", required=True, type=Path, help="nuScenes-format dataroot")
+    p.add_argument("--ckpt", required=ckpt_required, type=Path, help="checkpoint (RUN/best.pt or RUN/last.pt)")
+    p.add_argument("--version", default=VERSION, help="table folder under the dataroot")
+    p.add_argument("--config", default=None, help="refuse a checkpoint not trained with this config")
+    p.add_argument("--variant", default=None, choices=VARIANTS, help="refuse a checkpoint of another variant")
+    p.add_argument("--batch-size", type=whole_number(1), default=1)
 
+
+def _eval_score_thr(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--score-thr", type=_score, default=EVAL_SCORE_THR,
+                   help=f"keep boxes scoring at least this (default {EVAL_SCORE_THR}: AP integrates over all "
+                   "scores; at most 500 boxes per sample)")
+
+
+def _add_train(sub) -> None:
     p = sub.add_parser("train", help="train a variant; checkpoints, logs and validation in --out",
                        description="Train CL-FusionBEV (or an ablation variant) from scratch. Writes RUN/last.pt "
                        "(atomically, every epoch and every --ckpt-minutes), RUN/best.pt (best val NDS), run.json, "
-                       "metrics.jsonl and TensorBoard events in RUN/tb. Under torchrun it trains with DDP.")
-    add_arguments(p)
+                       "metrics.jsonl and TensorBoard events in RUN/tb. Under torchrun it trains with DDP. Options "
+                       "marked [recipe] default to the training recipe of the --config preset.")
+    add_train_arguments(p)
     p.set_defaults(fn=cmd_train)
 
-    def model_args(p, ckpt_required=True):
-        p.add_argument("--data", required=True, type=Path, help="nuScenes-format dataroot")
-        p.add_argument("--ckpt", required=ckpt_required, type=Path, help="checkpoint (RUN/best.pt or RUN/last.pt)")
-        p.add_argument("--version", default=VERSION, help="table folder under the dataroot")
-        p.add_argument("--config", default=None, help="refuse a checkpoint not trained with this config")
-        p.add_argument("--variant", default=None, choices=VARIANTS, help="refuse a checkpoint of another variant")
-        p.add_argument("--batch-size", type=int, default=1)
-        if ckpt_required:
-            p.add_argument("--score-thr", type=float, default=EVAL_SCORE_THR,
-                           help=f"keep boxes scoring at least this (default {EVAL_SCORE_THR}: AP integrates "
-                                "over all scores; at most 500 boxes per sample)")
 
+def _add_pretrain(sub) -> None:
+    p = sub.add_parser(
+        "pretrain", help="pretrain the camera encoder on dense labels (simgen make --dense-labels)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Train the detector's image encoder (ResNet + FPN + depth net, as --config builds it) on the "
+        "exact dense labels of a simulated set, then write RUN/encoder.pt for `clfbev train --image-init`.\n\n"
+        "Targets per feature cell: the depth bin of the lift (cross-entropy; the nearest pixel of the cell), "
+        "the nuScenes-lidarseg class of that pixel, and a perspective 3D head (CenterNet: a heatmap of the "
+        "projected box centres, with offset, depth, size and heading).\n\n"
+        "Make the pretraining set apart, with a seed of its own, never a split the detector is evaluated on:\n"
+        "  simgen make --out PRE --seed 1001 --dense-labels ...\n"
+        "  clfbev pretrain --data PRE --config tiny --out PRETRAIN\n"
+        "  clfbev train --data DATA --config tiny --variant camera --image-init PRETRAIN/encoder.pt --out RUN\n"
+        "encoder.pt records the command and the pretraining set's identity (its logs and a hash of its sample "
+        "tokens). RUN also holds last.pt (kill and --resume: the same weights), run.json, metrics.jsonl, tb/.")
+    p.add_argument("--data", required=True, type=Path, help="dataroot with dense/ labels")
+    p.add_argument("--config", default="tiny", help="model config: 'tiny', 'paper' or a YAML file (the detector's)")
+    p.add_argument("--out", required=True, type=Path,
+                   help="run folder: encoder.pt, last.pt, run.json, metrics.jsonl, tb/")
+    add_setting_options(p, PretrainConfig)
+    p.add_argument("--threads", type=whole_number(0), default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last.pt")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(fn=cmd_pretrain)
+
+
+def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="official nuScenes DetectionEval of a checkpoint on a split",
                        description="Predict a split, write results.json (nuScenes submission format) and run the "
                        "devkit's DetectionEval, restricted to the classes with GT in the split. Writes the devkit's "
                        "metrics_summary.json, metrics_details.json and plots/ to --out; prints a per-class table.")
-    model_args(p)
+    _model_args(p)
+    _eval_score_thr(p)
     p.add_argument("--split", default="sim-val", help="split to evaluate (splits.json key or official)")
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the devkit's PR / TP curve plots")
@@ -248,6 +306,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=CORRUPT_HELP)
     p.set_defaults(fn=cmd_eval)
 
+
+def _add_robustness(sub) -> None:
     p = sub.add_parser("robustness", help="every checkpoint on paired degraded sets and load-time corruptions",
                        description="Evaluate checkpoints on a clean set, paired degraded sets (simgen fog, lens "
                        "dirt, ...) and load-time corruptions, all through the official DetectionEval. Writes "
@@ -263,13 +323,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.set_defaults(fn=cmd_robustness)
 
+
+def _add_predict(sub) -> None:
     p = sub.add_parser("predict", help="results JSON for any dataroot (annotated or not)",
                        description="Run a checkpoint on a dataroot and write nuScenes-format results.")
-    model_args(p)
+    _model_args(p)
+    _eval_score_thr(p)
     p.add_argument("--split", default="all", help="split to predict ('all': every scene)")
     p.add_argument("--out", required=True, type=Path, help="results JSON path")
     p.set_defaults(fn=cmd_predict)
 
+
+def _add_show(sub) -> None:
     p = sub.add_parser("show", help="cameras + BEV with predictions and GT (and attention maps) as a PNG",
                        description="Draw one sample: the six cameras and a BEV, GT in green and predictions in "
                        "orange. --attention adds, below, the MCM and BSM attention of one BEV query cell "
@@ -277,23 +342,27 @@ def build_parser() -> argparse.ArgumentParser:
                        "centre of that model's best detection scoring at least --score-thr, else under the GT "
                        "box nearest the ego, or --cell. Each panel zooms on the weights (window mode: the "
                        "query's window) and shows the mean over heads and each head.")
-    model_args(p, ckpt_required=False)
+    _model_args(p, ckpt_required=False)
     p.add_argument("--results", required=True, type=Path, help="results JSON (from eval or predict)")
     p.add_argument("--sample", type=int, default=0, help="index among the samples the results cover")
-    p.add_argument("--score-thr", type=float, default=0.3, help="draw predictions scoring at least this")
+    p.add_argument("--score-thr", type=_score, default=0.3, help="draw predictions scoring at least this")
     p.add_argument("--attention", action="store_true", help="add the MCM / BSM attention of a query cell "
                    "(mcm / full variants)")
     p.add_argument("--cell", default=None, type=_xy, metavar="X,Y",
                    help="query point in metres, lidar frame (default: the best detection's centre)")
-    p.add_argument("--out", required=True, type=Path, help="PNG path")
+    p.add_argument("--out", required=True, type=_image_path, help="PNG path")
     p.set_defaults(fn=cmd_show)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="clfbev", description="CL-FusionBEV: camera + lidar BEV fusion detector "
+                                 "(train, evaluate with the official nuScenes metrics, predict, visualise).")
+    sub = ap.add_subparsers(dest="command", required=True)
+    for add in (_add_train, _add_pretrain, _add_eval, _add_robustness, _add_predict, _add_show):
+        add(sub)
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)    # argparse itself exits 2 on malformed options
     return run_guarded(lambda: args.fn(args))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

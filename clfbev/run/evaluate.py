@@ -1,9 +1,11 @@
 """Predictions -> nuScenes results JSON -> the official nuscenes-devkit ``DetectionEval``.
 
-The metric itself is never re-implemented here: this module only converts the detector's
-lidar-frame boxes to the nuScenes submission format (through :func:`clfbev.data.box_lidar_to_global`,
-the one place boxes leave the lidar frame), restricts the devkit config to the classes the split
-has (see REFERENCE.md, "Detection metric"), and runs ``DetectionEval``.
+:func:`evaluate_model` is the one path from a model to its metrics, used by validation during
+training, ``clfbev eval``, the robustness suite and the benchmark. The metric itself is never
+re-implemented here: this module only converts the detector's lidar-frame boxes to the nuScenes
+submission format (through :func:`clfbev.data.box_lidar_to_global`, the one place boxes leave
+the lidar frame), restricts the devkit's ``detection_cvpr_2019`` config to the classes the split
+has (:func:`detection_config_for`), and runs ``DetectionEval``.
 
 Attributes: the model has no attribute head. ``attribute_name`` is DERIVED from the predicted
 speed and class (moving/parked, moving/standing, with/without rider), not learned; the AAE it
@@ -13,14 +15,14 @@ gets is therefore a property of the velocity estimate.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from clfbev import atomic
+from clfbev import io
 from clfbev.data import Batch, NuScenesDetection, box_lidar_to_global, collate, split_scene_names
+from clfbev.errors import DataError
 
 MAX_PER_SAMPLE = 500          # the devkit's max_boxes_per_sample: it rejects a file with more
 VEHICLES = {"car", "truck", "bus", "trailer", "construction_vehicle"}
@@ -84,12 +86,9 @@ def detections_to_results(dets, sample_tokens, T_global_from_lidar, class_names)
 
 
 def write_results(path, results: dict, meta: dict | None = None) -> Path:
-    """Write the nuScenes submission ``{"meta": ..., "results": ...}`` atomically (temp + rename),
-    so a crash never leaves a half-written file that a later evaluation would read."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic.write_json(path, {"meta": {**DEFAULT_META, **(meta or {})}, "results": results})
-    return path
+    """Write the nuScenes submission ``{"meta": ..., "results": ...}`` atomically, so a crash
+    never leaves a half-written file that a later evaluation would read."""
+    return io.write_json(path, {"meta": {**DEFAULT_META, **(meta or {})}, "results": results})
 
 
 def _split_sample_tokens(nusc, split: str) -> list[str]:
@@ -98,18 +97,29 @@ def _split_sample_tokens(nusc, split: str) -> list[str]:
     return [s["token"] for s in nusc.sample if nusc.get("scene", s["scene_token"])["name"] in names]
 
 
+def _ego_distance(nusc, ann: dict) -> float:
+    """xy distance (m) from the ego pose of the annotation's lidar key frame to its centre: the
+    devkit's ``add_center_dist``, which its range filter compares with ``class_range``."""
+    sample = nusc.get("sample", ann["sample_token"])
+    pose = nusc.get("ego_pose", nusc.get("sample_data", sample["data"]["LIDAR_TOP"])["ego_pose_token"])
+    return float(np.hypot(ann["translation"][0] - pose["translation"][0],
+                          ann["translation"][1] - pose["translation"][1]))
+
+
 def detection_config_for(nusc, split: str, class_names):
-    """``detection_cvpr_2019`` restricted to what ``split`` has (REFERENCE.md, "Detection metric").
+    """``detection_cvpr_2019`` restricted to what ``split`` has, as the devkit needs it.
 
     class_range : every class with any GT box in the split (the devkit's filter indexes it for
         each GT box, lidar points or not).
-    class_names : classes with at least one GT box with lidar points (a class without evaluable
-        GT would count as AP 0), intersected with the model's ``class_names``.
+    class_names : classes with at least one GT box the devkit keeps (``filter_eval_boxes``: lidar
+        points, and closer to the ego than the class range), intersected with the model's
+        ``class_names``. A class without evaluable GT would count as AP 0.
     """
     from nuscenes.eval.common.config import config_factory
     from nuscenes.eval.detection.utils import category_to_detection_name
 
-    with_gt, with_points = set(), set()
+    cfg = config_factory("detection_cvpr_2019")
+    with_gt, evaluable = set(), set()
     for token in _split_sample_tokens(nusc, split):
         for ann_token in nusc.get("sample", token)["anns"]:
             ann = nusc.get("sample_annotation", ann_token)
@@ -117,13 +127,13 @@ def detection_config_for(nusc, split: str, class_names):
             if name is None:
                 continue
             with_gt.add(name)
-            if ann["num_lidar_pts"] > 0:
-                with_points.add(name)
-    cfg = config_factory("detection_cvpr_2019")
+            if ann["num_lidar_pts"] > 0 and _ego_distance(nusc, ann) < cfg.class_range[name]:
+                evaluable.add(name)
     cfg.class_range = {k: v for k, v in cfg.class_range.items() if k in with_gt}
-    cfg.class_names = [k for k in cfg.class_range if k in with_points and k in set(class_names)]
+    cfg.class_names = [k for k in cfg.class_range if k in evaluable and k in set(class_names)]
     if not cfg.class_names:
-        raise ValueError(f"split '{split}' has no GT with lidar points of the classes {list(class_names)}")
+        raise DataError(f"split '{split}' of {nusc.dataroot} has no GT with lidar points within the class range "
+                        f"of the classes {list(class_names)}")
     return cfg
 
 
@@ -146,7 +156,7 @@ def evaluate(nusc, results_path, split: str, out_dir, class_names, plots: bool =
     expected = set(_split_sample_tokens(nusc, split))
     got = set(sub["results"])
     if got != expected:
-        raise ValueError(f"{results_path}: results cover {len(got)} samples, split '{split}' has {len(expected)} "
+        raise DataError(f"{results_path}: results cover {len(got)} samples, split '{split}' has {len(expected)} "
                          f"({len(expected - got)} missing, {len(got - expected)} extra)")
     sub["results"] = {tok: [b for b in boxes if b["detection_name"] in cfg.class_range]
                       for tok, boxes in sub["results"].items()}
@@ -161,7 +171,7 @@ def evaluate(nusc, results_path, split: str, out_dir, class_names, plots: bool =
             "rotation": [1.0, 0.0, 0.0, 0.0], "velocity": [0.0, 0.0], "detection_name": cfg.class_names[0],
             "detection_score": 0.0, "attribute_name": attribute_for(cfg.class_names[0], 0.0)}]
     filtered = out_dir / "results_eval.json"
-    atomic.write_json(filtered, sub)
+    io.write_json(filtered, sub)
 
     ev = DetectionEval(nusc, cfg, str(filtered), eval_set=split, output_dir=str(out_dir), verbose=False)
     metrics, details = ev.evaluate()
@@ -170,29 +180,33 @@ def evaluate(nusc, results_path, split: str, out_dir, class_names, plots: bool =
     # What DetectionEval.main writes, without its prints and plots.
     summary = metrics.serialize()
     summary["meta"] = ev.meta.copy()
-    atomic.write_json(out_dir / "metrics_summary.json", summary)
-    atomic.write_json(out_dir / "metrics_details.json", details.serialize())
+    io.write_json(out_dir / "metrics_summary.json", summary)
+    io.write_json(out_dir / "metrics_details.json", details.serialize())
     return summary
 
 
 def _render_curves(ev, metrics, details) -> None:
     """The devkit's PR and TP curves (``DetectionEval.render``) as PNGs in ``ev.plot_dir``,
-    without its summary plot, which assumes all ten classes are evaluated."""
+    without its summary plot, which assumes all ten classes are evaluated. Each curve is drawn
+    by the devkit on a figure of its own and written atomically."""
     from nuscenes.eval.detection.render import class_pr_curve, class_tp_curve, dist_pr_curve
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    def save(name: str) -> None:
+        io.save_figure(Path(ev.plot_dir) / name, plt.gcf())
+        plt.close("all")
+
     cfg = ev.cfg
     for name in cfg.class_names:
-        class_pr_curve(details, metrics, name, cfg.min_precision, cfg.min_recall,
-                       savepath=os.path.join(ev.plot_dir, f"{name}_pr.png"))
-        class_tp_curve(details, metrics, name, cfg.min_recall, cfg.dist_th_tp,
-                       savepath=os.path.join(ev.plot_dir, f"{name}_tp.png"))
+        class_pr_curve(details, metrics, name, cfg.min_precision, cfg.min_recall)
+        save(f"{name}_pr.png")
+        class_tp_curve(details, metrics, name, cfg.min_recall, cfg.dist_th_tp)
+        save(f"{name}_tp.png")
     for dist_th in cfg.dist_ths:
-        dist_pr_curve(details, metrics, dist_th, cfg.min_precision, cfg.min_recall,
-                      savepath=os.path.join(ev.plot_dir, f"dist_pr_{dist_th}.png"))
-    plt.close("all")
+        dist_pr_curve(details, metrics, dist_th, cfg.min_precision, cfg.min_recall)
+        save(f"dist_pr_{dist_th}.png")
 
 
 # Evaluation keeps low-confidence boxes (up to MAX_PER_SAMPLE): average precision integrates over
@@ -215,3 +229,21 @@ def predict_split(model, dataset: NuScenesDetection, batch_size: int = 1,
         dets = model.predict(batch, score_thr=score_thr)
         results.update(detections_to_results(dets, batch.sample_tokens, batch.T_global_from_lidar.cpu(), class_names))
     return results
+
+
+def evaluate_model(model, dataset: NuScenesDetection, out_dir: str | Path, *, batch_size: int = 1,
+                   score_thr: float | None = None, plots: bool = False) -> dict:
+    """Predict every sample of ``dataset``'s split, write ``out_dir/results.json``, and score it
+    with the devkit's ``DetectionEval``; returns the devkit's summary dict (``mean_ap``,
+    ``nd_score``, ...), also written to ``out_dir`` (:func:`evaluate`).
+
+    score_thr : keep boxes scoring at least this (None: :data:`EVAL_SCORE_THR`).
+    The model is left in the mode (train or eval) it came in.
+    """
+    was_training = model.training
+    results = predict_split(model, dataset, batch_size=batch_size,
+                            score_thr=EVAL_SCORE_THR if score_thr is None else score_thr)
+    path = write_results(Path(out_dir) / "results.json", results)
+    summary = evaluate(dataset.nusc, path, dataset.split, out_dir, model.cfg.class_names, plots=plots)
+    model.train(was_training)
+    return summary

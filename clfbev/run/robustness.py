@@ -5,7 +5,7 @@ Conditions are (1) the first ``--set``, the clean reference; (2) every further `
 degraded dataroot (same annotation tables, only the sensor data differ: simgen's fog, lens dirt,
 ...; with occluders in the world, also what the sensors see of each object, see
 :func:`check_paired`); (3) every ``--corrupt`` load-time corruption applied to the clean set
-(:mod:`clfbev.corruptions`).
+(:mod:`clfbev.corruptions`). Every cell is one :func:`clfbev.run.evaluate.evaluate_model`.
 
 Metrics per checkpoint m and condition c:
 
@@ -22,11 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from clfbev import atomic
-from clfbev.checkpoint import load_model
+from clfbev import io
 from clfbev.corruptions import Corruption
-from clfbev.data import DataError, NuScenesDetection
-from clfbev.evaluate import evaluate, predict_split, write_results
+from clfbev.data import NuScenesDetection
+from clfbev.errors import ConfigError, DataError
+from clfbev.run.checkpoint import load_model
+from clfbev.run.evaluate import evaluate_model
 
 PAIRED_TABLES = ("sample_annotation", "instance", "sample", "ego_pose")
 # What occluders placed in the world may change in a paired set's labels (simgen --occlusion):
@@ -91,13 +92,15 @@ def fog_severity_of(root: Path, version: str) -> int | None:
         rec = json.loads(path.read_text())
         s = rec["settings"]
         return int(s["fog"]) if not s.get("fog_visibility") else None
-    except (ValueError, KeyError, TypeError):
+    except (ValueError, KeyError, TypeError, OverflowError):
         raise DataError(f"{path}: not a simgen degradation record") from None
 
 
 def conditions_of(sets: list[tuple[str, Path]], corruptions: list[Corruption], version: str) -> list[Condition]:
+    """The conditions of the ``--set`` dataroots (the first is the clean reference; the others
+    must be paired with it) and of the ``--corrupt`` load-time corruptions of the clean set."""
     if not sets:
-        raise ValueError("give at least one --set NAME=DATAROOT (the first is the clean reference)")
+        raise ConfigError("give at least one --set NAME=DATAROOT (the first is the clean reference)")
     (clean_name, clean_root), others = sets[0], sets[1:]
     for name, root in sets:
         if not (root / version).is_dir():
@@ -110,7 +113,7 @@ def conditions_of(sets: list[tuple[str, Path]], corruptions: list[Corruption], v
     out += [Condition(str(c), clean_root, (c,)) for c in corruptions]
     names = [c.name for c in out]
     if len(set(names)) != len(names):
-        raise ValueError(f"condition names must be unique, got {names}")
+        raise ConfigError(f"condition names must be unique (--set NAME, --corrupt), got {names}")
     return out
 
 
@@ -118,7 +121,7 @@ def run(ckpts: list[tuple[str, Path]], conditions: list[Condition], out: Path, s
         progress=print) -> dict:
     """Evaluate every checkpoint on every condition; returns (and writes) the robustness record."""
     if not ckpts:
-        raise ValueError("give at least one --ckpt NAME=CHECKPOINT")
+        raise ConfigError("give at least one --ckpt NAME=CHECKPOINT")
     out.mkdir(parents=True, exist_ok=True)
     record = {"split": split, "conditions": [c.name for c in conditions], "clean": conditions[0].name,
               "fog_severity": {c.name: c.fog_severity for c in conditions}, "models": {}}
@@ -127,16 +130,14 @@ def run(ckpts: list[tuple[str, Path]], conditions: list[Condition], out: Path, s
         entry = {"checkpoint": str(path), "variant": ckpt["variant"], "metrics": {}}
         for cond in conditions:
             ds = NuScenesDetection(cond.dataroot, version, split, model.cfg.data_config(), cond.corruptions)
-            where = out / name / cond.name.replace(":", "_")
-            results_path = write_results(where / "results.json", predict_split(model, ds))
-            summary = evaluate(ds.nusc, results_path, split, where, model.cfg.class_names)
+            summary = evaluate_model(model, ds, out / name / cond.name.replace(":", "_"))
             entry["metrics"][cond.name] = {"mAP": summary["mean_ap"], "NDS": summary["nd_score"],
                                            "AP": summary["mean_dist_aps"]}
             progress(f"{name:12s} {cond.name:24s} mAP {summary['mean_ap']:.4f}  NDS {summary['nd_score']:.4f}")
         record["models"][name] = entry
     summarise(record)
-    atomic.write_json(out / "robustness.json", record)
-    atomic.write_text(out / "robustness.md", markdown(record))
+    io.write_json(out / "robustness.json", record)
+    io.write_text(out / "robustness.md", markdown(record))
     plot(record, out / "robustness.png")
     return record
 
@@ -159,6 +160,7 @@ def summarise(record: dict) -> None:
 
 
 def markdown(record: dict) -> str:
+    """The report: NDS (mAP) per model and condition with mRR and mCE, then RR and CE per condition."""
     conds = record["conditions"]
     lines = ["# Robustness", "",
              f"Split `{record['split']}`; clean reference `{record['clean']}`; official DetectionEval for every "
@@ -216,7 +218,5 @@ def plot(record: dict, path: Path) -> None:
         a2.grid(alpha=0.3, axis="y")
         a2.legend(fontsize=8)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp)
+    io.save_figure(path, fig)
     plt.close(fig)
-    tmp.replace(path)

@@ -1,8 +1,8 @@
 """Depth supervision of the camera branch from the lidar (BEVDepth, Li et al. 2023).
 
 A lift-splat camera trained only through the detection loss has to discover depth from a few
-thousand boxes, and on small data it does not (BEVDepth's ablation; BEVDet reports +4.7 mAP
-from the depth loss). The lidar measures the depth of every pixel it hits, so:
+thousand boxes, and on small data it does not (BEVDepth's ablation). The lidar measures the
+depth of every pixel it hits, so:
 
 1. project the key-frame lidar points into each camera through the same intrinsics,
    extrinsics and image augmentation that lift-splat uses (``img_aug @ K @ T_cam_from_lidar``),
@@ -24,28 +24,20 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from clfbev.camera_encoder import CameraGeometry
+
 
 def nearest_lidar_points(
-    points: list[Tensor],
-    intrinsics: Tensor,
-    T_lidar_from_cam: Tensor,
-    img_aug: Tensor,
-    image_size: tuple[int, int],
-    feature_stride: int,
-    depth_bins: tuple[float, float, float],
-    ignore: list[Tensor | None] | None = None,
+    points: list[Tensor], cams: CameraGeometry, ignore: list[Tensor | None] | None = None
 ) -> tuple[Tensor, Tensor]:
     """The nearest key-frame lidar point of every camera feature cell (steps 1 and 2 above).
 
     Parameters
     ----------
     points : B tensors (n_i, >= 5) x, y, z, intensity, time lag; key-frame lidar frame.
-    intrinsics : (B, N, 3, 3) K of the original images.
-    T_lidar_from_cam : (B, N, 4, 4) camera -> lidar.
-    img_aug : (B, N, 3, 3) original -> network pixels.
-    image_size : (H, W) of the network images; feature map (H / s, W / s).
-    feature_stride : s.
-    depth_bins : (d_min, d_max, d_step) of camera z; points outside the bins are left out.
+    cams : the B x N cameras (``img_aug`` required); feature map (H / s, W / s) of
+        ``cams.image_size`` at ``cams.feature_stride``; points outside ``cams.depth_bins`` are
+        left out.
     ignore : optional B masks (n_i,) of points to leave out (pasted objects), or None entries.
 
     Returns
@@ -54,15 +46,16 @@ def nearest_lidar_points(
     index : (B, N, H / s, W / s) int64 row of that point in ``points[b]``, -1 where none (of
         equally near points, the last row).
     """
-    B, N = intrinsics.shape[:2]
-    H, W = image_size
+    B, N = cams.intrinsics.shape[:2]
+    H, W = cams.image_size
+    feature_stride = cams.feature_stride
     h, w = H // feature_stride, W // feature_stride
-    d_min, d_max, d_step = (float(v) for v in depth_bins)
+    d_min, d_max, d_step = (float(v) for v in cams.depth_bins)
     z_max = d_min + int(round((d_max - d_min) / d_step)) * d_step
-    device = intrinsics.device
+    device = cams.intrinsics.device
     # P = A K [R | t]_cam_from_lidar, per camera; float64 keeps pixels exact far from the centre.
-    T_cam_from_lidar = torch.linalg.inv(T_lidar_from_cam.double())
-    P = img_aug.double() @ intrinsics.double() @ T_cam_from_lidar[..., :3, :]  # (B, N, 3, 4)
+    T_cam_from_lidar = torch.linalg.inv(cams.T_lidar_from_cam.double())
+    P = cams.img_aug.double() @ cams.intrinsics.double() @ T_cam_from_lidar[..., :3, :]  # (B, N, 3, 4)
     depth = torch.full((B, N * h * w), float("inf"), dtype=torch.float64, device=device)
     index = torch.full((B, N * h * w), -1, dtype=torch.long, device=device)
     for b in range(B):                      # a loop over the batch; each sample is vectorised
@@ -86,16 +79,7 @@ def nearest_lidar_points(
     return depth.view(B, N, h, w), index.view(B, N, h, w)
 
 
-def depth_targets(
-    points: list[Tensor],
-    intrinsics: Tensor,
-    T_lidar_from_cam: Tensor,
-    img_aug: Tensor,
-    image_size: tuple[int, int],
-    feature_stride: int,
-    depth_bins: tuple[float, float, float],
-    ignore: list[Tensor | None] | None = None,
-) -> Tensor:
+def depth_targets(points: list[Tensor], cams: CameraGeometry, ignore: list[Tensor | None] | None = None) -> Tensor:
     """Nearest-lidar depth bin of every camera feature cell; the parameters are those of
     :func:`nearest_lidar_points`.
 
@@ -103,9 +87,8 @@ def depth_targets(
     -------
     (B, N, H / s, W / s) int64 bin index, -1 where the cell has no target.
     """
-    depth, _ = nearest_lidar_points(points, intrinsics, T_lidar_from_cam, img_aug, image_size,
-                                    feature_stride, depth_bins, ignore)
-    return bins_of(depth, depth_bins)
+    depth, _ = nearest_lidar_points(points, cams, ignore)
+    return bins_of(depth, cams.depth_bins)
 
 
 def bins_of(depth: Tensor, depth_bins: tuple[float, float, float]) -> Tensor:

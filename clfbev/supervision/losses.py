@@ -4,45 +4,20 @@ residuals with the sin-difference angle term, direction cross-entropy.
 ``L = l_cls L_cls + l_reg (L_reg + L_reg_theta) + l_dir L_dir``, every term summed over
 anchors and divided by the number of positive anchors in the batch (clamped to >= 1), as in
 SECOND / PointPillars: the loss scale then does not depend on how many anchors the grid has.
+Optionally the velocity residuals get a loss of their own, balanced between moving and still
+positives (:func:`velocity_loss`). An unknown GT velocity has box weight 0 (its targets carry
+no loss and no gradient).
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from clfbev.assign import Targets
 from clfbev.head import FlatPredictions, HeadOutput
-
-
-@dataclass(frozen=True)
-class LossWeights:
-    """Weights of eq. 9 and of the individual residuals.
-
-    cls, reg, dir : l_cls, l_reg, l_dir.
-    depth : weight of the camera's lidar-supervised depth loss (:mod:`clfbev.depth`; BEVDepth
-        uses 3.0); 0 turns the supervision off (the ablation). Unused by the ``lidar`` variant.
-    semantic : weight of the camera's perspective class loss (:mod:`clfbev.perspective`); 0 (the
-        default) builds no perspective head. Unused by the ``lidar`` variant.
-    code_weights : per residual ``(dx, dy, dz, dl, dw, dh, dtheta, vx, vy)``; velocity is
-        down-weighted (0.2) because it is noisy (from a few sweeps) and would otherwise pull
-        the shared features away from localisation early in training.
-    focal_alpha, focal_gamma : focal loss parameters (paper: 0.25 and 2).
-    smooth_l1_beta : Smooth-L1 transition point; 1/9 is SECOND's ``sigma = 3``.
-    """
-
-    cls: float = 1.0
-    reg: float = 2.0
-    dir: float = 0.2
-    depth: float = 3.0
-    semantic: float = 0.0
-    code_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.2, 0.2)
-    focal_alpha: float = 0.25
-    focal_gamma: float = 2.0
-    smooth_l1_beta: float = 1.0 / 9.0
+from clfbev.settings import LossWeights
+from clfbev.supervision.assign import AnchorTargets
 
 
 def sigmoid_focal_loss(logits: Tensor, targets: Tensor, alpha: float = 0.25, gamma: float = 2.0) -> Tensor:
@@ -100,18 +75,49 @@ def direction_cross_entropy(logits: Tensor, targets: Tensor) -> Tensor:
     return F.cross_entropy(logits.reshape(-1, n_bins), targets.reshape(-1), reduction="none").view(targets.shape)
 
 
+# m/s: a positive whose GT is faster moves, for the balance of :func:`velocity_loss`. Above the
+# speed a parked object's label noise reaches, below any traffic's.
+MOVING_SPEED = 1.0
+
+
+def velocity_loss(pred: Tensor, target: Tensor, known: Tensor, beta: float) -> Tensor:
+    """The velocity loss of P positives, moving and still ones weighing the same in total.
+
+    pred, target : (P, 2) ``vx, vy`` m/s (the residuals: anchors have velocity 0).
+    known : (P,) bool, False where the GT velocity is unknown (no loss there).
+    beta : Smooth-L1 beta, m/s.
+
+    Why: three quarters of the positives stand still, and under an L1-type loss summed over
+    them the best answer for features that do not yet tell a parked car from a moving one is 0,
+    so the velocity never leaves 0. Weighting each group to half the total makes predicting 0
+    cost as much as the moving half is fast. Returns a 0-d tensor (0 without a known velocity).
+    """
+    per_box = smooth_l1(pred - target, beta).sum(-1)                    # (P,)
+    moving = known & (target.norm(dim=-1) > MOVING_SPEED)
+    still = known & ~moving
+    n_moving, n_still = moving.sum(), still.sum()
+    groups = (n_moving > 0).to(pred.dtype) + (n_still > 0).to(pred.dtype)
+    w = torch.where(moving, 1.0 / n_moving.clamp(min=1), 1.0 / n_still.clamp(min=1)) / groups.clamp(min=1)
+    return (per_box * w * known.to(pred.dtype)).sum()
+
+
 def detection_loss(
     preds: HeadOutput | FlatPredictions,
-    targets: Targets,
+    targets: AnchorTargets,
     weights: LossWeights = LossWeights(),
+    velocity_balance: bool = False,
+    velocity_beta: float = 1.0,
+    velocity_weight: float = 0.2,
 ) -> dict[str, Tensor]:
     """Total detection loss (eq. 9) of a batch.
 
     Parameters
     ----------
     preds : head output for B samples, (B, N, ...) once flattened.
-    targets : batched targets (:func:`clfbev.assign.stack_targets`), (B, N, ...).
+    targets : batched targets (:func:`clfbev.supervision.assign.stack_targets`), (B, N, ...).
     weights : loss weights.
+    velocity_balance : the velocity residuals (7:) leave the Smooth-L1 of the box residuals for
+        :func:`velocity_loss` (``velocity_beta``), weighted ``weights.reg * velocity_weight``.
 
     Returns
     -------
@@ -140,21 +146,9 @@ def detection_loss(
     )
     loss_cls = (focal * targets.cls_weights).sum() / norm
 
-    # Box residuals (eq. 6, 7): Smooth-L1 per residual, the angle through sin-difference. Only
-    # positives have a box (their weights are 0 elsewhere), so only their rows are computed:
-    # a few hundred of the ~330k anchors of a 128 x 128 grid.
     pos_index = torch.nonzero(positives.reshape(-1)).flatten()
-    deltas = flat.box_deltas.reshape(-1, code_size).index_select(0, pos_index)
-    box_targets = targets.box_targets.reshape(-1, code_size).index_select(0, pos_index)
-    box_weights = targets.box_weights.reshape(-1, code_size).index_select(0, pos_index)
-    pred_theta, target_theta = sin_difference(deltas[:, 6], box_targets[:, 6])
-    diff = deltas - box_targets
-    diff = torch.cat([diff[:, :6], (pred_theta - target_theta)[:, None], diff[:, 7:]], dim=-1)
-    code_w = deltas.new_tensor(weights.code_weights[:code_size])
-    per_code = smooth_l1(diff, weights.smooth_l1_beta) * box_weights * code_w
-    loss_reg_theta = per_code[:, 6].sum() / norm
-    loss_reg = (per_code.sum() - per_code[:, 6].sum()) / norm
-    loss_vel = per_code[:, 7:].sum() / norm
+    loss_reg, loss_reg_theta, loss_vel = _box_losses(flat, targets, pos_index, norm, weights, velocity_balance,
+                                                     velocity_beta)
 
     # Direction (eq. 8): only positives have a heading to classify.
     n_bins = flat.dir_logits.shape[-1]
@@ -162,6 +156,8 @@ def detection_loss(
     loss_dir = direction_cross_entropy(dir_logits, targets.dir_targets.reshape(-1)[pos_index]).sum() / norm
 
     total = weights.cls * loss_cls + weights.reg * (loss_reg + loss_reg_theta) + weights.dir * loss_dir
+    if velocity_balance and code_size > 7:
+        total = total + weights.reg * velocity_weight * loss_vel
     return {
         "loss": total,
         "loss_cls": loss_cls,
@@ -171,3 +167,30 @@ def detection_loss(
         "loss_vel": loss_vel.detach(),
         "num_pos": num_pos.detach(),
     }
+
+
+def _box_losses(flat: FlatPredictions, targets: AnchorTargets, pos_index: Tensor, norm: Tensor,
+                weights: LossWeights, velocity_balance: bool, velocity_beta: float) -> tuple[Tensor, Tensor, Tensor]:
+    """(loss_reg, loss_reg_theta, loss_vel) of the positives ``pos_index`` (eq. 6, 7): Smooth-L1
+    per residual, the angle through sin-difference, each divided by ``norm``. Only positives have
+    a box (their weights are 0 elsewhere), so only their rows are computed: a few hundred of the
+    ~330k anchors of a 128 x 128 grid. With ``velocity_balance`` the velocity is
+    :func:`velocity_loss`'s instead of a share of the Smooth-L1."""
+    code_size = flat.box_deltas.shape[-1]
+    deltas = flat.box_deltas.reshape(-1, code_size).index_select(0, pos_index)
+    box_targets = targets.box_targets.reshape(-1, code_size).index_select(0, pos_index)
+    box_weights = targets.box_weights.reshape(-1, code_size).index_select(0, pos_index)
+    pred_theta, target_theta = sin_difference(deltas[:, 6], box_targets[:, 6])
+    diff = deltas - box_targets
+    diff = torch.cat([diff[:, :6], (pred_theta - target_theta)[:, None], diff[:, 7:]], dim=-1)
+    code_w = deltas.new_tensor(weights.code_weights[:code_size])
+    if velocity_balance:
+        code_w[7:] = 0.0
+    per_code = smooth_l1(diff, weights.smooth_l1_beta) * box_weights * code_w
+    loss_reg_theta = per_code[:, 6].sum() / norm
+    loss_reg = (per_code.sum() - per_code[:, 6].sum()) / norm
+    loss_vel = per_code[:, 7:].sum() / norm
+    if velocity_balance and code_size > 7:
+        known = box_weights[:, 7] > 0
+        loss_vel = velocity_loss(deltas[:, 7:9], box_targets[:, 7:9], known, velocity_beta)
+    return loss_reg, loss_reg_theta, loss_vel

@@ -11,6 +11,7 @@ import torch
 from shapely.geometry import Polygon
 
 from clfbev.ops.boxes import (
+    points_in_boxes,
     bev_iou,
     bev_iou_aligned,
     boxes_bev_corners,
@@ -326,3 +327,21 @@ def test_cuda_matches_cpu() -> None:
     kept_gpu = rotated_nms(ta.to("cuda"), scores.to("cuda"), 0.3)
     assert kept_gpu.device.type == "cuda"
     assert kept_gpu.cpu().tolist() == rotated_nms(ta, scores, 0.3).tolist()
+
+
+def test_points_in_boxes_rotated_faces_included_numpy_and_torch_alike():
+    box = np.array([[1.0, 2.0, 0.0, 4.0, 2.0, 2.0, np.pi / 2]])           # length along y after the rotation
+    pts = np.array([[1.0, 3.9, 0.0], [1.0, 4.1, 0.0], [1.9, 2.0, 0.5], [2.1, 2.0, 0.0], [1.0, 2.0, 1.1],
+                    [1.0, 2.0, 1.0]])                                    # the last on the top face
+    expected = [[True], [False], [True], [False], [False], [True]]
+    np.testing.assert_array_equal(points_in_boxes(pts, box), expected)
+    assert points_in_boxes(torch.from_numpy(pts), torch.from_numpy(box)).tolist() == expected
+    grown = points_in_boxes(pts, box, pad=0.2)[:, 0]
+    np.testing.assert_array_equal(grown, [True, True, True, True, True, True])
+    # Many random boxes: the two array types give the same answer, point by point.
+    g = np.random.default_rng(0)
+    boxes = np.concatenate([g.uniform(-5, 5, (40, 3)), g.uniform(0.3, 4, (40, 3)), g.uniform(-4, 4, (40, 1))], 1)
+    points = g.uniform(-7, 7, (3000, 3))
+    inside = points_in_boxes(points, boxes)
+    assert inside.shape == (3000, 40) and 50 < inside.sum() < 3000 * 40 // 4
+    np.testing.assert_array_equal(points_in_boxes(torch.from_numpy(points), torch.from_numpy(boxes)).numpy(), inside)

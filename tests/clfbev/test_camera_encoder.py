@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from clfbev.camera_encoder import CameraEncoder, compress_z, depth_bin_centres, lift_geometry, splat
+from clfbev.camera_encoder import CameraEncoder, CameraGeometry, compress_z, depth_bin_centres, lift_geometry, splat
 from clfbev.resnet import FPN, ResNet
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -205,11 +205,11 @@ def test_lift_geometry_projects_back_to_cell_centres():
     image_size = (144, 256)
     names = list(RIG)
     K, T = zip(*(camera(n, 0.16) for n in names))
-    geom = lift_geometry(
+    geom = lift_geometry(CameraGeometry(
         torch.tensor(np.stack(K), dtype=torch.float32)[None],
         torch.tensor(np.stack(T), dtype=torch.float32)[None],
         None, image_size, STRIDE, BINS,
-    )[0].double().numpy()                                         # (N, D, h, w, 3)
+    ))[0].double().numpy()                                         # (N, D, h, w, 3)
     N, D, h, w, _ = geom.shape
     assert (N, D, h, w) == (6, 80, 18, 32)
     depths = depth_bin_centres(BINS).double().numpy()
@@ -228,7 +228,7 @@ def test_lift_geometry_projects_back_to_cell_centres():
 def test_splat_lands_in_the_point_voxel_on_nuscenes_rig():
     image_size = (144, 256)                                       # 1600x900 * 0.16
     K, T, _, depth, context, expected, true, cells = one_hot_setup(0.16, None, image_size)
-    geom = lift_geometry(K, T, None, image_size, STRIDE, BINS)
+    geom = lift_geometry(CameraGeometry(K, T, None, image_size, STRIDE, BINS))
     vox = splat(depth, context, geom, PC_RANGE, VOXEL)            # (B, C=2, nz, ny, nx)
     assert tuple(vox.shape) == (2, 2, 8, 160, 160)
     landed = check_landing(vox, expected, true)
@@ -243,7 +243,7 @@ def test_splat_lands_in_the_point_voxel_on_nuscenes_rig():
     flip = np.array([[-1.0, 0, W_aug], [0, 1, 0], [0, 0, 1]])
     A = flip @ crop @ resize
     K2, T2, A2, depth2, context2, expected2, true2, cells2 = one_hot_setup(0.32, A, (H_aug, W_aug))
-    geom2 = lift_geometry(K2, T2, A2, (H_aug, W_aug), STRIDE, BINS)
+    geom2 = lift_geometry(CameraGeometry(K2, T2, A2, (H_aug, W_aug), STRIDE, BINS))
     vox2 = splat(depth2, context2, geom2, PC_RANGE, VOXEL)
     landed2 = check_landing(vox2, expected2, true2)
     for key in landed:
@@ -261,7 +261,7 @@ def test_splat_conserves_mass_and_matches_reference():
     pc_range, voxel = (-12.0, -16.0, -3.0, 20.0, 16.0, 3.0), (1.0, 2.0, 2.0)
     Kt = torch.tensor(np.stack(K), dtype=torch.float32).expand(2, -1, -1, -1)
     Tt = torch.tensor(np.stack(T), dtype=torch.float32).expand(2, -1, -1, -1)
-    geom = lift_geometry(Kt, Tt, None, image_size, STRIDE, bins)  # (2, 6, D, 9, 16, 3)
+    geom = lift_geometry(CameraGeometry(Kt, Tt, None, image_size, STRIDE, bins))  # (2, 6, D, 9, 16, 3)
     B, N, D, h, w, _ = geom.shape
     depth = torch.rand(B, N, D, h, w).softmax(dim=2)
     context = torch.randn(B, N, 5, h, w)
@@ -308,7 +308,7 @@ def test_depth_bins_and_bad_arguments():
     with pytest.raises(ValueError):
         depth_bin_centres((4.0, 2.0, 0.5))
     with pytest.raises(ValueError, match="multiple"):
-        lift_geometry(torch.eye(3)[None, None], torch.eye(4)[None, None], None, (60, 176), 8, (1.0, 9.0, 1.0))
+        lift_geometry(CameraGeometry(torch.eye(3)[None, None], torch.eye(4)[None, None], None, (60, 176), 8, (1.0, 9.0, 1.0)))
 
 
 # ----------------------------------------------------------------------------- full encoder

@@ -6,6 +6,7 @@ in a subprocess: clfbev only ever sees the files on disk.
 """
 from __future__ import annotations
 
+import json
 import re
 import shutil
 
@@ -15,8 +16,9 @@ import torch
 from pyquaternion import Quaternion
 
 from clfbev.data import (
-    CAMERAS, Batch, DataConfig, DataError, NuScenesDetection, box_lidar_to_global, box_to_lidar, collate,
+    ALL_SCENES, CAMERAS, Batch, DataConfig, NuScenesDetection, box_lidar_to_global, box_to_lidar, collate,
 )
+from clfbev.errors import DataError
 
 VERSION = "v1.0-sim"
 SWEEP_S = 0.05                                       # 20 Hz lidar
@@ -92,12 +94,12 @@ def test_key_frame_points_in_boxes_match_num_lidar_pts(wide):
         anns = [nusc.get("sample_annotation", t) for t in nusc.get("sample", s.sample_token)["anns"]]
         assert len(anns) == len(s.gt_boxes)
         want = np.array([a["num_lidar_pts"] for a in anns])
-        key = s.points.numpy()
+        key = s.points
         key = key[key[:, 4] == 0, :3].astype(np.float64)
-        T_lidar_from_global = np.linalg.inv(s.T_global_from_lidar.numpy())
+        T_lidar_from_global = np.linalg.inv(s.T_global_from_lidar)
         R_full = np.stack([T_lidar_from_global[:3, :3] @ Quaternion(a["rotation"]).rotation_matrix for a in anns])
         lwh = np.array([[a["size"][1], a["size"][0], a["size"][2]] for a in anns])
-        boxes = s.gt_boxes.numpy().astype(np.float64)
+        boxes = s.gt_boxes.astype(np.float64)
         # Full rotation, the box's own float64 centre: the devkit's points_in_box (inclusive).
         local = in_box_local(key, boxes[:, :3], R_full)
         full = (np.abs(local) <= lwh[:, None] / 2).all(-1).sum(1)
@@ -116,16 +118,20 @@ def test_key_frame_points_in_boxes_match_num_lidar_pts(wide):
         assert want.max() > 50                      # the check is not vacuous
         # Velocity: the devkit's global velocity rotated into the lidar frame keeps its length
         # (up to the tilt, which moves a little of it into the dropped vz).
-        v_global = np.nan_to_num(np.stack([nusc.box_velocity(a["token"]) for a in anns]))
-        speed_xy = np.linalg.norm(boxes[:, 7:9], axis=1)
-        tol = 0.02 * np.linalg.norm(v_global, axis=1) + 1e-4
-        assert (np.abs(speed_xy - np.linalg.norm(v_global[:, :2], axis=1)) <= tol).all()
-        assert np.abs(v_global).max() > 1.0
+        # An unknown one (NaN) stays NaN, not 0.
+        v_global = np.stack([nusc.box_velocity(a["token"]) for a in anns])
+        known = np.isfinite(v_global).all(axis=1)
+        np.testing.assert_array_equal(np.isfinite(boxes[:, 7:9]).all(axis=1), known)
+        assert np.isnan(boxes[~known, 7:9]).all()
+        speed_xy = np.linalg.norm(boxes[known, 7:9], axis=1)
+        tol = 0.02 * np.linalg.norm(v_global[known], axis=1) + 1e-4
+        assert (np.abs(speed_xy - np.linalg.norm(v_global[known, :2], axis=1)) <= tol).all()
+        assert np.abs(v_global[known]).max() > 1.0
 
 
 def test_multi_sweep_time_lag_and_alignment(train):
     s = train[1]
-    pts = s.points.numpy()
+    pts = s.points
     lags = np.unique(pts[:, 4])
     n = train.cfg.n_sweeps
     assert (lags > 0).any()
@@ -148,14 +154,15 @@ def test_multi_sweep_time_lag_and_alignment(train):
         assert np.mean(dist < 0.1) > 0.7, k
     # n_sweeps=1 gives exactly the key sweep, bit for bit.
     one = NuScenesDetection(train.root, VERSION, "sim-train", DataConfig(n_sweeps=1))[1].points
-    assert (one[:, 4] == 0).all() and torch.equal(one, s.points[s.points[:, 4] == 0])
+    assert (one[:, 4] == 0).all() and np.array_equal(one, s.points[s.points[:, 4] == 0])
 
 
 def test_projection_into_cam_front(train):
     H, W = train.cfg.image_size
     cam = CAMERAS.index("CAM_FRONT")
     for index in range(len(train)):
-        s = train[index]
+        s = collate([train[index]])                     # as the model sees it: torch, (1, ...)
+        s = Batch(**{k: v[0] if k not in ("sample_tokens", "pasted") else v for k, v in vars(s).items()})
         T_cam_from_lidar = torch.linalg.inv(s.T_lidar_from_cam[cam].double())
         # The pixel map of the network's image: img_aug @ K (K is the original calibration).
         P = (s.img_aug[cam].double() @ s.intrinsics[cam].double()) @ T_cam_from_lidar[:3]
@@ -221,4 +228,61 @@ def test_errors_name_the_file_or_split(tiny_dataset, tmp_path):
     cam_sd = ds.nusc.get("sample_data", ds.nusc.get("sample", ds.sample_tokens[1])["data"]["CAM_BACK"])
     (root / cam_sd["filename"]).write_bytes(b"not a jpeg")
     with pytest.raises(DataError, match=re.escape(cam_sd["filename"].split("/")[-1])):
+        ds[1]
+
+
+def _copy_dataroot(src, dst, copied=(VERSION,)):
+    """A copy of the dataroot ``src`` at ``dst``: the folders ``copied`` copied, the rest linked."""
+    dst.mkdir()
+    for name in ("maps", "samples", "sweeps", "lidarseg", VERSION):
+        if name in copied:
+            shutil.copytree(src / name, dst / name)
+        else:
+            (dst / name).symlink_to((src / name).resolve())
+    return dst
+
+
+@pytest.mark.parametrize("field, value", [("translation", None), ("size", float("nan")), ("rotation", "junk")])
+def test_a_bad_annotation_record_names_the_table_and_field(train, tmp_path, field, value):
+    root = _copy_dataroot(train.root, tmp_path / "copy")
+    table = root / VERSION / "sample_annotation.json"
+    anns = json.loads(table.read_text())
+    loaded = next(a for a in train.nusc.sample_annotation          # one the loader reads: a car with points
+                  if a["num_lidar_pts"] > 5 and a["category_name"].startswith("vehicle.car"))
+    ann = next(a for a in anns if a["token"] == loaded["token"])
+    if value is None:
+        del ann[field]
+    elif isinstance(value, float):
+        ann[field][0] = value                             # json writes NaN
+    else:
+        ann[field] = value
+    table.write_text(json.dumps(anns))
+    ds = NuScenesDetection(root, VERSION, ALL_SCENES)
+    with pytest.raises(DataError, match=rf"sample_annotation\.json: record {ann['token']} .*'{field}'") as e:
+        ds[ds.sample_tokens.index(ann["sample_token"])]
+    assert "\n" not in str(e.value)
+
+
+def test_a_non_finite_pose_names_the_table(tiny_dataset, tmp_path):
+    root = _copy_dataroot(tiny_dataset, tmp_path / "copy")
+    table = root / VERSION / "ego_pose.json"
+    poses = json.loads(table.read_text())
+    for pose in poses:
+        pose["translation"][2] = float("inf")
+    table.write_text(json.dumps(poses))
+    with pytest.raises(DataError, match=r"ego_pose\.json: .*'translation' must be 3 finite numbers"):
+        NuScenesDetection(root, VERSION, ALL_SCENES)[0]
+
+
+def test_a_truncated_jpeg_and_a_missing_lidar_file_are_named(tiny_dataset, tmp_path):
+    root = _copy_dataroot(tiny_dataset, tmp_path / "copy", copied=(VERSION, "samples"))
+    ds = NuScenesDetection(root, VERSION, "sim-train")
+    sample = ds.nusc.get("sample", ds.sample_tokens[0])
+    image = root / ds.nusc.get("sample_data", sample["data"]["CAM_FRONT"])["filename"]
+    image.write_bytes(image.read_bytes()[:-500])        # cut: the decoder would fill it with grey
+    with pytest.raises(DataError, match=rf"truncated image file .*{re.escape(image.name)}"):
+        ds[0]
+    lidar = root / ds.nusc.get("sample_data", ds.nusc.get("sample", ds.sample_tokens[1])["data"]["LIDAR_TOP"])["filename"]
+    lidar.unlink()
+    with pytest.raises(DataError, match=rf"cannot read lidar file .*{re.escape(lidar.name)}"):
         ds[1]

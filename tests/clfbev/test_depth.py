@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from clfbev.augment import image_matrix
-from clfbev.camera_encoder import CameraEncoder
+from clfbev.camera_encoder import CameraEncoder, CameraGeometry
 from clfbev.config import tiny
 from clfbev.data import NuScenesDetection, resize_and_crop
-from clfbev.depth import depth_loss, depth_targets
 from clfbev.model import CLFusionBEV
+from clfbev.supervision.depth import depth_loss, depth_targets
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -61,8 +61,8 @@ def test_a_point_lands_in_its_bin_and_feature_cell_through_resize_crop_and_flip(
     older = torch.tensor([[10.15, -0.5, 0.25, 0.5, 0.05]], dtype=torch.float64)  # same ray, an earlier sweep
     pasted = torch.tensor([[15.225, -0.75, 0.375, 0.5, 0.0]], dtype=torch.float64)  # same ray, pasted
     points = torch.cat([behind, p, older, pasted])
-    t = depth_targets([points], K_1600[None, None], front_camera()[None, None], img_aug, (H, W), s, BINS,
-                      ignore=[torch.tensor([False, False, False, True])])
+    cams = CameraGeometry(K_1600[None, None], front_camera()[None, None], img_aug, (H, W), s, BINS)
+    t = depth_targets([points], cams, ignore=[torch.tensor([False, False, False, True])])
     assert t.shape == (1, 1, H // s, W // s)
     assert t[0, 0, row, col] == math.floor((20.3 - 1.0) / 1.0)      # the nearest kept point wins
     assert (t >= 0).sum() == 1
@@ -101,12 +101,12 @@ def test_the_vfe_gets_at_least_95_percent_of_a_multi_sweep_sample(tiny_dataset, 
     cfg = replace(tiny(), n_sweeps=n_sweeps)
     ds = NuScenesDetection(tiny_dataset, "v1.0-sim", "all", cfg.data_config())
     sample = ds[len(ds) - 1]                                   # the last key frame has earlier sweeps
-    lags = sample.points[:, 4].unique().numel()
+    lags = np.unique(sample.points[:, 4]).size
     assert lags == 3 if n_sweeps == 3 else lags >= 3
     model = CLFusionBEV(cfg, "lidar").eval()
     seen = []
     model.lidar_encoder.vfe.register_forward_hook(lambda m, inputs, out: seen.append(inputs[0].shape[0]))
     with torch.no_grad():
-        model.lidar_encoder([sample.points])
+        model.lidar_encoder([torch.from_numpy(sample.points)])
     assert seen[0] >= 0.95 * len(sample.points)
     assert seen[0] == len(sample.points)          # in range (the loader crops) and under max_voxels

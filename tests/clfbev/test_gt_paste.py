@@ -9,16 +9,10 @@ import torch
 
 from clfbev.config import tiny
 from clfbev.data import NuScenesDetection, Sample
-from clfbev.gt_paste import GTDatabase, SortedPoints, draw_objects, gt_paste, object_points, points_in_box
+from clfbev.gt_paste import GTDatabase, SortedPoints, draw_objects, gt_paste, object_points
 from clfbev.ops.boxes import bev_iou
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-def test_points_in_box_rotated():
-    box = np.array([1.0, 2.0, 0.0, 4.0, 2.0, 2.0, np.pi / 2])   # length along y after the rotation
-    pts = np.array([[1.0, 3.9, 0.0], [1.0, 4.1, 0.0], [1.9, 2.0, 0.5], [2.1, 2.0, 0.0], [1.0, 2.0, 1.1]])
-    np.testing.assert_array_equal(points_in_box(pts, box), [True, False, True, False, False])
 
 
 def test_object_points_follow_the_object_back_in_time():
@@ -61,13 +55,13 @@ def test_paste_keeps_clear_of_sweep_trails():
     boxes do not touch, but the database car drove through the parked one 0.4 s ago."""
     moving = np.array([[0.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0, 10.0, 0.0]], np.float32)
     db = GTDatabase(moving, np.array([0]), [np.array([[0, 0, 0, 0, 0.0], [-4, 0, 0, 0, 0.4]], np.float32)])
-    parked = torch.tensor([[-4.5, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0, 0.0, 0.0]])
-    pts = torch.tensor([[-4.5, 0.0, 0.0, 0.0, 0.0], [-4.5, 0.0, 0.0, 0.0, 0.45]])
-    s = Sample(images=torch.zeros(0), intrinsics=torch.zeros(0), T_lidar_from_cam=torch.zeros(0),
-               img_aug=torch.zeros(0), points=pts, gt_boxes=parked, gt_labels=torch.tensor([0]),
-               T_global_from_lidar=torch.eye(4, dtype=torch.float64), sample_token="t")
+    parked = np.array([[-4.5, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0, 0.0, 0.0]], np.float32)
+    pts = np.array([[-4.5, 0.0, 0.0, 0.0, 0.0], [-4.5, 0.0, 0.0, 0.0, 0.45]], np.float32)
+    s = Sample(images=np.zeros(0), intrinsics=np.zeros(0), T_lidar_from_cam=np.zeros(0),
+               img_aug=np.zeros(0), points=pts, gt_boxes=parked, gt_labels=np.array([0]),
+               T_global_from_lidar=np.eye(4), sample_token="t")
     assert len(gt_paste(s, db, 1, np.random.default_rng(0)).gt_boxes) == 1      # not pasted
-    far = replace(s, gt_boxes=parked + torch.tensor([[-6.0, 0, 0, 0, 0, 0, 0, 0, 0]]))
+    far = replace(s, gt_boxes=parked + np.array([[-6.0, 0, 0, 0, 0, 0, 0, 0, 0]], np.float32))
     assert len(gt_paste(far, db, 1, np.random.default_rng(0)).gt_boxes) == 2    # clear of it: pasted
 
 
@@ -76,7 +70,7 @@ def test_paste_adds_objects_with_their_points(tiny_dataset):
     val = NuScenesDetection(tiny_dataset, "v1.0-sim", "sim-val", tiny().data_config())
     db = GTDatabase.from_dataset(train)                        # without the images
     assert len(db) > 10 and all(len(p) >= 5 for p in db.points)
-    full = GTDatabase.from_arrays((s.points.numpy(), s.gt_boxes.numpy(), s.gt_labels.numpy())
+    full = GTDatabase.from_arrays((s.points, s.gt_boxes, s.gt_labels)
                                   for s in (train[i] for i in range(len(train))))
     assert np.array_equal(full.boxes, db.boxes) and np.array_equal(full.labels, db.labels)  # as the full samples
     assert all(np.array_equal(a, b) for a, b in zip(full.points, db.points))
@@ -84,18 +78,20 @@ def test_paste_adds_objects_with_their_points(tiny_dataset):
     out = gt_paste(s, db, 8, np.random.default_rng(0))
     n0, n1 = len(s.gt_boxes), len(out.gt_boxes)
     assert n1 > n0
-    torch.testing.assert_close(out.gt_boxes[:n0], s.gt_boxes)
-    new = out.gt_boxes[n0:].double()
-    assert (bev_iou(new[:, :7], out.gt_boxes[:n0, :7].double()) == 0).all()      # no collision with the sample
+    assert np.array_equal(out.gt_boxes[:n0], s.gt_boxes) and np.array_equal(out.gt_labels[:n0], s.gt_labels)
+    new = torch.from_numpy(out.gt_boxes[n0:]).double()
+    assert (bev_iou(new[:, :7], torch.from_numpy(out.gt_boxes[:n0, :7]).double()) == 0).all()   # no collision with the sample
     iou = bev_iou(new[:, :7], new[:, :7]) - torch.eye(len(new), dtype=torch.float64)
     assert (iou <= 1e-9).all()                                                      # nor with each other
-    pts = out.points.numpy()
+    pts, n_pasted = out.points, 0
     for box in new.numpy():                          # each pasted object holds its database points exactly
         k = int(np.flatnonzero((np.abs(db.boxes - box.astype(np.float32)).max(1) == 0))[0])
         inside = pts[object_points(pts, box)]
         assert sorted(map(tuple, inside)) == sorted(map(tuple, db.points[k]))
+        n_pasted += len(db.points[k])
+    assert out.pasted.sum() == n_pasted                  # exactly the pasted points are flagged
     again = gt_paste(s, db, 8, np.random.default_rng(0))
-    torch.testing.assert_close(again.points, out.points)
+    assert np.array_equal(again.points, out.points)
 
 
 def test_balanced_draw_gives_every_class_the_same_share():

@@ -1,4 +1,4 @@
-"""Tests for clfbev.anchors, clfbev.head, clfbev.assign and clfbev.losses: exact anchor grids, SECOND-style
+"""Tests for clfbev.anchors, clfbev.head, clfbev.supervision.assign and clfbev.supervision.losses: exact anchor grids, SECOND-style
 class-aware assignment on hand-computed IoUs, hand-computed losses, decode(encode) round trips."""
 
 from __future__ import annotations
@@ -9,10 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from clfbev.anchors import ANCHOR_SIZES, CLASS_NAMES, MATCH_THRESHOLDS, anchor_class_ids, make_anchors, match_thresholds
-from clfbev.assign import Targets, assign_targets, stack_targets
-from clfbev.head import AnchorHead, FlatPredictions, HeadOutput, decode, direction_target
-from clfbev.losses import LossWeights, detection_loss, direction_cross_entropy, sigmoid_focal_loss, sin_difference, smooth_l1
+from clfbev.anchors import MATCH_THRESHOLDS, anchor_class_ids, make_anchors, match_thresholds
+from clfbev.settings import ANCHOR_SIZES, DETECTION_CLASSES, LossWeights
+from clfbev.supervision.assign import AnchorTargets, assign_targets, stack_targets
+from clfbev.head import AnchorHead, FlatPredictions, HeadOutput, decode, direction_target, heading_from_motion
+from clfbev.supervision.losses import (
+    detection_loss, direction_cross_entropy, sigmoid_focal_loss, sin_difference, smooth_l1,
+)
 from clfbev.ops.boxes import bev_iou, encode_boxes
 
 # The assignment tests run full 128 x 128 grids: multi-threaded kernels on the shared cores
@@ -72,7 +75,7 @@ def test_anchor_grid_centres_sizes_exact():
 
 
 def test_anchor_tables_cover_all_classes():
-    assert set(CLASS_NAMES) == set(ANCHOR_SIZES) == set(MATCH_THRESHOLDS)
+    assert set(DETECTION_CLASSES) == set(ANCHOR_SIZES) == set(MATCH_THRESHOLDS)
     assert all(pos > neg for pos, neg in MATCH_THRESHOLDS.values())
     assert match_thresholds(["car", "pedestrian"]) == [(0.6, 0.45), (0.5, 0.35)]
     with pytest.raises(ValueError, match="no anchor size"):
@@ -373,13 +376,13 @@ def all_pairs_assignment(anchors, gt, labels, thresholds):
     return out_labels, matched
 
 
-def random_scene(gen, n_per_class, half_range, size_jitter=0.3, classes=range(len(CLASS_NAMES)), clustered=0.0):
+def random_scene(gen, n_per_class, half_range, size_jitter=0.3, classes=range(len(DETECTION_CLASSES)), clustered=0.0):
     """GT boxes (M, 9) of the given classes (mean size times 1 +- size_jitter), uniform over
     the square +-half_range, any yaw; a share ``clustered`` sits within 1.5 m of the previous
     box of its class (crowds: several GT compete for one forced anchor). Labels (M,)."""
     labels = torch.tensor(list(classes)).repeat_interleave(n_per_class)
     m = labels.shape[0]
-    sizes = torch.tensor([ANCHOR_SIZES[CLASS_NAMES[c]] for c in labels.tolist()])
+    sizes = torch.tensor([ANCHOR_SIZES[DETECTION_CLASSES[c]] for c in labels.tolist()])
     sizes = sizes * (1 + size_jitter * (2 * torch.rand(m, 3, generator=gen) - 1))
     xy = (2 * torch.rand(m, 2, generator=gen) - 1) * half_range
     near = torch.rand(m, generator=gen) < clustered
@@ -392,7 +395,7 @@ def random_scene(gen, n_per_class, half_range, size_jitter=0.3, classes=range(le
     return torch.cat([xy, z, sizes, yaw, torch.randn(m, 2, generator=gen)], dim=1), labels
 
 
-SMALL_CLASSES = [CLASS_NAMES.index(name) for name in ("barrier", "motorcycle", "bicycle", "pedestrian", "traffic_cone")]
+SMALL_CLASSES = [DETECTION_CLASSES.index(name) for name in ("barrier", "motorcycle", "bicycle", "pedestrian", "traffic_cone")]
 
 
 @pytest.mark.parametrize(
@@ -408,10 +411,10 @@ SMALL_CLASSES = [CLASS_NAMES.index(name) for name in ("barrier", "motorcycle", "
 def test_assignment_equals_all_pairs_reference(seed, size, half_range, per_class, clustered, classes):
     """Windowed, bounded matching == the all-pairs IoU matrix: labels, matched GT, box targets."""
     gen = torch.Generator().manual_seed(seed)
-    anchors = make_anchors(CLASS_NAMES, (size, size), (-half_range, -half_range, -5.0, half_range, half_range, 3.0))
-    thresholds = match_thresholds(CLASS_NAMES)
+    anchors = make_anchors(DETECTION_CLASSES, (size, size), (-half_range, -half_range, -5.0, half_range, half_range, 3.0))
+    thresholds = match_thresholds(DETECTION_CLASSES)
     gt, labels = random_scene(gen, per_class, half_range, classes=classes, clustered=clustered)
-    labels[:2] = torch.tensor([-1, len(CLASS_NAMES)])  # classes the head does not detect
+    labels[:2] = torch.tensor([-1, len(DETECTION_CLASSES)])  # classes the head does not detect
     targets = assign_targets(anchors, gt, labels, thresholds)
     ref_labels, ref_matched = all_pairs_assignment(anchors, gt, labels, thresholds)
     assert torch.equal(targets.labels, ref_labels)
@@ -451,15 +454,15 @@ def test_every_gt_gets_a_positive_with_the_closest_rotation(size):
     15% of pedestrians and 72% of traffic cones had no positive at 1.6 m cells."""
     gen = torch.Generator().manual_seed(size)
     half_range = 51.2
-    anchors = make_anchors(CLASS_NAMES, (size, size), (-half_range, -half_range, -5.0, half_range, half_range, 3.0))
+    anchors = make_anchors(DETECTION_CLASSES, (size, size), (-half_range, -half_range, -5.0, half_range, half_range, 3.0))
     k = 40  # draws per class, half uniform, half between centres
-    labels = torch.arange(len(CLASS_NAMES)).repeat_interleave(k)
+    labels = torch.arange(len(DETECTION_CLASSES)).repeat_interleave(k)
     xy = (2 * torch.rand(labels.shape[0], 2, generator=gen) - 1) * half_range
     between = torch.arange(labels.shape[0]) % 2 == 1
     xy[between] = grid_points(size, half_range, gen, int(between.sum()))
     yaw = (2 * torch.rand(labels.shape[0], generator=gen) - 1) * math.pi
     yaw[::7] = torch.tensor([0.0, math.pi / 2, -math.pi, 3 * math.pi / 4])[torch.arange(yaw[::7].shape[0]) % 4]
-    sizes = torch.tensor([ANCHOR_SIZES[name] for name in CLASS_NAMES])
+    sizes = torch.tensor([ANCHOR_SIZES[name] for name in DETECTION_CLASSES])
     # A forced anchor overlaps its GT or is its nearest centre: GT of one class further apart
     # than twice the diagonal plus two cells never share one.
     min_dist = 2 * sizes[:, :2].norm(dim=1) + 4 * half_range / size
@@ -469,19 +472,19 @@ def test_every_gt_gets_a_positive_with_the_closest_rotation(size):
     z, velocity = torch.full_like(yaw[:, None], -1.0), torch.zeros(len(yaw), 2)
     gt = torch.cat([xy, z, sizes[labels], yaw[:, None], velocity], dim=1)
 
-    targets = assign_targets(anchors, gt, labels, match_thresholds(CLASS_NAMES))
+    targets = assign_targets(anchors, gt, labels, match_thresholds(DETECTION_CLASSES))
     pos = torch.nonzero(targets.labels > 0).flatten()
     gt_of = targets.matched_gt[pos]
     assert (gt_of >= 0).all() and torch.equal(anchor_class_ids(anchors)[pos], labels[gt_of])
     assert torch.equal(targets.labels[pos], labels[gt_of] + 1)
     missing = sorted(set(range(gt.shape[0])) - set(gt_of.tolist()))
-    assert not missing, [(CLASS_NAMES[labels[j]], gt[j, [0, 1, 6]].tolist()) for j in missing]
+    assert not missing, [(DETECTION_CLASSES[labels[j]], gt[j, [0, 1, 6]].tolist()) for j in missing]
     # The anchors' own yaws (float32 pi/2 is not pi/2): on the diagonals they decide.
     rotations = anchors[0, 0, 0, :, 6].tolist()
     closer = torch.tensor([closest_rotation(float(y), rotations) for y in yaw])
     with_closer = set(gt_of[pos % 2 == closer[gt_of]].tolist())
     wrong = sorted(set(range(gt.shape[0])) - with_closer)
-    assert not wrong, [(CLASS_NAMES[labels[j]], gt[j, [0, 1, 6]].tolist()) for j in wrong]
+    assert not wrong, [(DETECTION_CLASSES[labels[j]], gt[j, [0, 1, 6]].tolist()) for j in wrong]
 
 
 def test_assignment_rejects_anchors_off_a_grid_and_bad_thresholds():
@@ -699,7 +702,7 @@ def test_gradients_reach_all_head_parameters():
             assign_targets(anchors, torch.zeros(0, 9), torch.zeros(0, dtype=torch.long), match_thresholds(names)),
         ]
     )
-    assert isinstance(targets, Targets) and targets.labels.shape == (2, ny * nx * 6)
+    assert isinstance(targets, AnchorTargets) and targets.labels.shape == (2, ny * nx * 6)
     losses = detection_loss(head(bev), targets)
     assert all(torch.isfinite(v) for v in losses.values())
     assert float(losses["num_pos"]) >= 2 and float(losses["loss"].detach()) > 0
@@ -714,3 +717,16 @@ def test_gradients_reach_all_head_parameters():
     for d in dets:
         assert d.boxes.shape[1] == 9 and d.boxes.shape[0] == d.scores.shape[0] == d.labels.shape[0] <= 20
         assert (d.scores[:-1] >= d.scores[1:]).all()
+
+
+def test_heading_follows_a_clear_velocity():
+    """A box moving against its yaw faster than the threshold turns by pi; slower, or along
+    its yaw, it keeps its yaw; the result stays in [offset, offset + 2 pi)."""
+    boxes = torch.tensor([[0, 0, 0, 4, 2, 1.5, 0.2, -5.0, -1.0],     # against, fast: turns
+                          [0, 0, 0, 4, 2, 1.5, 0.2, -0.5, 0.0],      # against, slow: keeps
+                          [0, 0, 0, 4, 2, 1.5, 2.0, -3.0, 4.0],      # along: keeps
+                          [0, 0, 0, 4, 2, 1.5, 3.0, 5.0, 0.0]])      # against: turns, wraps
+    yaw = heading_from_motion(boxes, 1.0, dir_offset=-math.pi / 4)
+    expected = torch.tensor([0.2 + math.pi, 0.2, 2.0, 3.0 - math.pi])
+    torch.testing.assert_close(yaw, expected)
+    assert (yaw >= -math.pi / 4).all() and (yaw < 7 * math.pi / 4).all()

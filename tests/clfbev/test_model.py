@@ -7,21 +7,29 @@ resized to the network's image size, ~5000 lidar-like points (a ground plane at 
 points on the three GT boxes: a car, a pedestrian and a bicycle).
 
 The training step's speed is measured by ``scripts/bench.py`` (``train_tiny_samples_per_s``),
-not asserted here: a shared machine's timings are noise to a test. The slow paper forward (51.4 M parameters, 6 x 640 x 1600 images, 30k points) takes about
-70 s with a peak RSS of about 2.8 GB.
+not asserted here: a shared machine's timings are noise to a test. The paper forward (6 x 640 x
+1600 images, 30k points) is marked slow.
 """
 
 import math
+import pickle
 import resource
+import subprocess
+import sys
 import time
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
 from clfbev.config import VARIANTS, load_config, paper, tiny
-from clfbev.data import Batch
+from clfbev.data import Batch, NuScenesDetection
+from clfbev.errors import ConfigError
+from clfbev.lidar_encoder import SparseEncoder
 from clfbev.model import CLFusionBEV, count_parameters
+from clfbev.run.attention_query import attention_maps
+from clfbev.supervision.targets import TrainingCollate, batch_loss, build_targets, training_loss
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -84,7 +92,7 @@ def make_batch(cfg, n_points: int = 5000, seed: int = 0) -> Batch:
 
 
 def train_step(model, batch, opt):
-    losses = model.loss(batch)
+    losses = batch_loss(model, batch)
     opt.zero_grad()
     losses["loss"].backward()
     opt.step()
@@ -110,7 +118,7 @@ def test_variant_trains_and_predicts(variant):
     assert (model.fuser is not None) == (variant in ("concat", "mcm", "full"))
 
     opt = torch.optim.AdamW(model.parameters(), lr=2e-4, weight_decay=1e-2)
-    losses = model.loss(batch)
+    losses = batch_loss(model, batch)
     opt.zero_grad()
     losses["loss"].backward()
     assert torch.isfinite(losses["loss"])
@@ -199,7 +207,7 @@ def test_fused_bev_is_the_lidar_path_at_initialisation(variant):
     lidar = torch.relu(torch.randn(2, cfg.lidar_bev_channels, *cfg.lidar_bev_shape, generator=g))
     cams = [torch.randn(2, cfg.cam_bev_channels, *cfg.cam_bev_shape, generator=g) * s for s in (1.0, 30.0)]
     with torch.no_grad():
-        fused = [model.fuse(lidar, cam) for cam in cams]
+        fused = [model.fuse(lidar, cam)[0] for cam in cams]
         f = model.fuser
         expected = f.act(f.bn(f.conv_lidar(lidar if variant == "concat" else lidar[:, : cfg.fusion_dim])))
     assert cfg.lidar_bev_channels > cfg.fusion_dim        # the sparse channels and the sweep bands
@@ -210,23 +218,121 @@ def test_fused_bev_is_the_lidar_path_at_initialisation(variant):
 def test_load_config(tmp_path):
     assert load_config("tiny") == tiny() and load_config("paper") == paper()
     bad = tmp_path / "bad.yaml"
-    bad.write_text("fusion_dim: 32\nfusoin_heads: 4\n")
-    with pytest.raises(ValueError, match=r"bad\.yaml.*unknown key 'fusoin_heads'"):
-        load_config(bad)
-    bad.write_text("loss:\n  clss: 2.0\n")
-    with pytest.raises(ValueError, match=r"bad\.yaml.*unknown key 'loss\.clss'"):
-        load_config(bad)
-    bad.write_text("fusion_dim: wide\n")
-    with pytest.raises(ValueError, match=r"bad\.yaml.*'fusion_dim'"):
-        load_config(bad)
-    bad.write_text("attn_mode: global\n")
-    with pytest.raises(ValueError, match=r"bad\.yaml.*attn_mode"):
-        load_config(bad)
+    cases = {
+        "fusion_dim: 32\nfusoin_heads: 4\n": r"bad\.yaml.*unknown key 'fusoin_heads'",
+        "loss:\n  clss: 2.0\n": r"bad\.yaml.*unknown key 'loss\.clss'",
+        "fusion_dim: wide\n": r"bad\.yaml.*'fusion_dim'",
+        "attn_mode: global\n": r"bad\.yaml.*attn_mode",
+        "attn_ffn_ratio: .nan\n": r"bad\.yaml: key 'attn_ffn_ratio' must be a finite number",
+        "depth_bins: [1.0, .inf, 1.0]\n": r"bad\.yaml: key 'depth_bins' must be a list of finite values",
+        "loss: {depth: -.inf}\n": r"bad\.yaml: key 'loss\.depth' must be a finite number",
+        "voxel_size: [0.0, 0.4, 0.4]\n": r"bad\.yaml: voxel_size must be > 0",
+        "voxel_size: [300.0, 0.4, 0.4]\n": r"bad\.yaml: .*empty voxel grid",
+        "image_size: [192, 352\nfusion_dim: 8\n": r"bad\.yaml: not valid YAML at line \d+, column \d+",
+        "- 1\n- 2\n": r"bad\.yaml: expected a mapping",
+    }
+    for text, message in cases.items():
+        bad.write_text(text)
+        with pytest.raises(ConfigError, match=message) as e:
+            load_config(bad)
+        assert "\n" not in str(e.value), text                 # one line, no parser caret block
+    with pytest.raises(ConfigError, match="no such file"):
+        load_config(tmp_path / "missing.yaml")
     good = tmp_path / "good.yaml"
     good.write_text("preset: paper\nattn_mode: window\nimage_size: [256, 704]\nloss: {cls: 2}\n")
     cfg = load_config(good)
     assert cfg == replace(paper(), attn_mode="window", image_size=(256, 704),
                           loss=replace(paper().loss, cls=2.0))
+
+
+def test_config_is_a_leaf():
+    """clfbev.config imports no model module and no torch (it builds nothing to learn its sizes)."""
+    code = "import sys, clfbev.config; print(sorted(m for m in sys.modules if m.startswith(('clfbev', 'torch'))))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert eval(out) == ["clfbev", "clfbev.config", "clfbev.errors", "clfbev.settings"]
+
+
+ODD_CONFIGS = [replace(tiny(), voxel_size=(0.2, 0.4, 0.4), sparse_channels=(16, 32)),
+               replace(tiny(), lidar_bev_stride=1, sparse_channels=(8, 16, 32, 32), pc_range=(-50, -50, -3, 50, 50, 3),
+                       voxel_size=(0.8, 0.8, 0.3)),
+               replace(paper(), lidar_bev_stride=4, voxel_size=(0.15, 0.15, 0.2))]
+
+
+@pytest.mark.parametrize("cfg", [tiny(), paper(), *ODD_CONFIGS], ids=["tiny", "paper", "odd1", "odd2", "odd3"])
+def test_derived_sizes_equal_the_modules_own(cfg):
+    """The config's arithmetic gives what the modules built from it compute, for every variant."""
+    with torch.device("meta"):   # no memory, no init cost
+        sparse = SparseEncoder(cfg.vfe_ch, cfg.sparse_channels, cfg.lidar_grid_shape, cfg.sparse_blocks,
+                               xy_stride=cfg.lidar_bev_stride)
+        assert (sparse.out_size(), sparse.out_channels + cfg.sweep_bands) == (cfg.lidar_bev_shape,
+                                                                               cfg.lidar_bev_channels)
+        for variant in VARIANTS:
+            model = CLFusionBEV(cfg, variant)
+            if model.lidar_encoder is not None:
+                assert model.lidar_encoder.out_channels == cfg.lidar_bev_channels
+                assert model.lidar_encoder.out_size == cfg.lidar_bev_shape
+            if model.camera_encoder is not None:
+                assert model.camera_encoder.out_channels == cfg.cam_bev_channels
+                assert model.camera_encoder.bev_shape == cfg.cam_bev_shape == cfg.lidar_bev_shape
+            assert model.backbone.stages[0][0].in_channels == cfg.bev_channels_of(variant)
+            assert model.head.conv_cls.in_channels == cfg.head_in_channels
+
+
+@pytest.mark.parametrize("variant", ["mcm", "full"])
+def test_forward_exposes_the_attention_inputs(variant):
+    """The attention maps drawn from the forward's own inputs equal those of re-running the
+    encoders up to each module (the attention picture's former path)."""
+    torch.manual_seed(0)
+    cfg = tiny()
+    model = CLFusionBEV(cfg, variant).eval()
+    for p in list(model.mcm.parameters()) + ([] if model.bsm is None else list(model.bsm.parameters())):
+        p.data.normal_(0, 0.2, generator=torch.Generator().manual_seed(3))   # open the gates
+    batch = make_batch(cfg)
+    cell = (70, 75)
+    with torch.no_grad():
+        att = model(batch).attention
+        lidar_bev = model.lidar_encoder(batch.points)
+        cam_bev = model.camera_encoder(batch.images, batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug)
+        rerun = [model.mcm.attention_map(lidar_bev, cam_bev, cell)]
+        if model.bsm is not None:
+            rerun.append(model.bsm.attention_map(model.fuser(model.mcm(lidar_bev, cam_bev), cam_bev), cell))
+        exposed = [model.mcm.attention_map(att.mcm_lidar, att.mcm_camera, cell)]
+        if model.bsm is not None:
+            exposed.append(model.bsm.attention_map(att.bsm, cell))
+        else:
+            assert att.bsm is None
+    for a, b in zip(exposed, rerun):
+        assert torch.equal(a, b) and a.shape == (1, cfg.attn_heads, *cfg.lidar_bev_shape)
+        assert a.sum(dim=(2, 3)).sub(1).abs().max() < 1e-5 and a.std() > 0
+    # ... and those the attention picture draws today.
+    drawn = attention_maps(model, batch, cell)
+    assert [m.name for m in drawn] == ["MCM", "BSM"][: len(exposed)]
+    for a, m in zip(exposed, drawn):
+        assert np.array_equal(a[0].numpy(), m.weights)
+
+
+@pytest.mark.parametrize("variant", ["lidar", "full"])
+def test_training_collate_builds_the_targets_model_loss_uses(tiny_dataset, variant):
+    cfg = replace(tiny(), loss=replace(tiny().loss, semantic=1.0))
+    ds = NuScenesDetection(tiny_dataset, "v1.0-sim", "sim-train", cfg.data_config())
+    collate_fn = pickle.loads(pickle.dumps(TrainingCollate(cfg, cameras=variant != "lidar")))   # as to a worker
+    batch, targets = collate_fn([ds[0], ds[1]])
+    assert targets.anchor.labels.shape == (2, math.prod(cfg.head_feature_size) * 20)
+    assert (targets.depth is None) == (targets.semantic is None) == (variant == "lidar")
+    torch.manual_seed(0)
+    model = CLFusionBEV(cfg, variant)
+    assert torch.equal(collate_fn.anchors, model.anchors)
+    again = build_targets(batch, cfg, model.anchors, cameras=variant != "lidar")
+    assert all(torch.equal(getattr(targets.anchor, f), getattr(again.anchor, f)) for f in ("labels", "box_targets"))
+    if variant != "lidar":
+        assert torch.equal(targets.depth, again.depth) and (targets.depth >= 0).sum() > 100
+        assert torch.equal(targets.semantic, again.semantic) and (targets.semantic < 10).any()
+    torch.manual_seed(1)
+    outside = training_loss(model(batch), targets.to("cpu"), cfg)
+    torch.manual_seed(1)
+    inside = batch_loss(model, batch)
+    assert outside.keys() == inside.keys() and all(torch.equal(outside[k], inside[k]) for k in inside)
+    assert ("loss_depth" in inside) == ("loss_semantic" in inside) == (variant != "lidar")
 
 
 def test_to_dict_round_trip(tmp_path):
@@ -253,7 +359,7 @@ def test_paper_forward_on_cpu():
     batch = make_batch(cfg, n_points=30000)
     t = time.perf_counter()
     with torch.no_grad():
-        out = model(batch)
+        out = model(batch).head
     dt = time.perf_counter() - t
     peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     print(f"\npaper full forward (B=1, 6 x 640 x 1600): {dt:.1f} s, peak RSS {peak_gb:.1f} GB, "

@@ -8,13 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from clfbev.camera_encoder import CameraEncoder
+from clfbev.camera_encoder import CameraEncoder, CameraGeometry
 from clfbev.config import tiny
 from clfbev.data import NuScenesDetection, collate, resize_and_crop
-from clfbev.depth import nearest_lidar_points
-from clfbev.losses import sigmoid_focal_loss
+from clfbev.errors import ConfigError
 from clfbev.model import CLFusionBEV
-from clfbev.perspective import cell_classes, point_classes, semantic_loss
+from clfbev.supervision.depth import nearest_lidar_points
+from clfbev.supervision.losses import sigmoid_focal_loss
+from clfbev.supervision.perspective import cell_classes, point_classes, semantic_loss
+from clfbev.supervision.targets import batch_loss
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -65,8 +67,8 @@ def test_the_nearest_point_decides_the_cells_class():
     road = torch.tensor([12.0, 4.0, -1.8, 0.5, 0.0], dtype=torch.float64)
     points = torch.stack([wall_behind_car, on_car, in_hidden, wall, road])
     labels = torch.tensor([0, 8])                                                   # car, pedestrian
-    _, nearest = nearest_lidar_points([points], K_1600[None, None], front_camera()[None, None], img_aug,
-                                      (H, W), S, BINS)
+    cams = CameraGeometry(K_1600[None, None], front_camera()[None, None], img_aug, (H, W), S, BINS)
+    _, nearest = nearest_lidar_points([points], cams)
     classes = cell_classes(nearest, [points], [torch.cat([car, hidden])], [labels], 10)
     assert classes.shape == (1, 1, H // S, W // S)
     assert cell_of(on_car, A) == cell_of(wall_behind_car, A) and cell_of(wall, A) == cell_of(in_hidden, A)
@@ -113,18 +115,18 @@ def test_the_model_builds_and_trains_the_head_only_with_a_weight(tiny_dataset):
     ds = NuScenesDetection(tiny_dataset, "v1.0-sim", "all", cfg.data_config())
     batch = collate([ds[0]])
     off = CLFusionBEV(cfg, "camera")
-    assert off.camera_encoder.semantic_head is None and "loss_semantic" not in off.loss(batch)
+    assert off.camera_encoder.semantic_head is None and "loss_semantic" not in batch_loss(off, batch)
     on = CLFusionBEV(replace(cfg, loss=replace(cfg.loss, semantic=1.0)), "concat")
-    losses = on.loss(batch)
+    losses = batch_loss(on, batch)
     assert losses["loss_semantic"] > 0
     losses["loss"].backward()
     assert on.camera_encoder.semantic_head.weight.grad.abs().sum() > 0
     # The head only trains the features: predictions do not depend on it.
     on.eval()
-    before = on(batch).cls_logits
+    before = on(batch).head.cls_logits
     with torch.no_grad():
         on.camera_encoder.semantic_head.weight.add_(1.0)
-    torch.testing.assert_close(on(batch).cls_logits, before)
+    torch.testing.assert_close(on(batch).head.cls_logits, before)
 
 
 def test_semantic_lift_puts_the_class_probabilities_in_the_camera_bev():
@@ -141,7 +143,7 @@ def test_semantic_lift_puts_the_class_probabilities_in_the_camera_bev():
     T = front_camera().float().expand(1, 2, 4, 4)
     with torch.no_grad():
         bev, depth, logits = enc.lift_splat(images, K, T)
-        geom = lift_geometry(K, T, None, (64, 176), 8, BINS)
+        geom = lift_geometry(CameraGeometry(K, T, None, (64, 176), 8, BINS))
         expected = compress_z(splat(depth, logits.sigmoid(), geom, pc_range, voxel))
     assert bev.shape[1] == 11 and bev[:, 8:].sum() > 0
     torch.testing.assert_close(bev[:, 8:], expected)
@@ -152,11 +154,11 @@ def test_semantic_lift_puts_the_class_probabilities_in_the_camera_bev():
 def test_semantic_lift_needs_the_perspective_loss(tmp_path):
     from clfbev.config import load_config
 
-    with pytest.raises(ValueError, match="loss.semantic"):
+    with pytest.raises(ConfigError, match="loss.semantic"):
         replace(tiny(), cam_semantic_lift=True)
     cfg = replace(tiny(), cam_semantic_lift=True, loss=replace(tiny().loss, semantic=1.0))
     assert cfg.cam_bev_channels == tiny().cam_bev_channels + len(cfg.class_names)
     bad = tmp_path / "lift.yaml"
     bad.write_text("preset: tiny\ncam_semantic_lift: true\n")
-    with pytest.raises(ValueError, match="lift.yaml"):
+    with pytest.raises(ConfigError, match="lift.yaml"):
         load_config(bad)

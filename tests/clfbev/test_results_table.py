@@ -42,7 +42,7 @@ TRAIN = {"train_split": "sim-train", "val_split": "", "version": "v1.0-sim", "se
 
 
 def summary(mean_ap: float, nds: float, aps: dict, tp: dict) -> dict:
-    """A metrics_summary.json as the devkit writes it (clfbev.evaluate.evaluate)."""
+    """A metrics_summary.json as the devkit writes it (clfbev.run.evaluate)."""
     label_tp = {c: {k: (float("nan") if c == "traffic_cone" and k != "trans_err" else tp[k]) for k in TP}
                 for c in aps}
     return {"label_aps": {c: {"0.5": ap, "1.0": ap, "2.0": ap, "4.0": ap} for c, ap in aps.items()},
@@ -179,7 +179,8 @@ def test_a_run_with_another_recipe_is_flagged(bench):
     add_run(bench, "lidar_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)))
     add_run(bench, "full_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"lr": 0.002}, code="def5678")
     # Bookkeeping, and the epoch count that --max-steps overrides, do not change a result.
-    add_run(bench, "concat_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"ckpt_minutes": 3.0, "epochs": 12})
+    add_run(bench, "concat_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)),
+            train={"ckpt_minutes": 3.0, "save_every_steps": 5, "workers": 2, "epochs": 12})
     add_run(bench, "mcm_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"gt_paste_fade": 0.2})
     # The recipe pastes nothing for the camera variant: that is one recipe, per variant. But the
     # second seed of a variant must paste as its first.
@@ -214,7 +215,7 @@ def test_the_write_is_atomic(bench, monkeypatch):
 
     def crash(src, dst):
         raise OSError("disk full")
-    monkeypatch.setattr(rt.atomic.os, "replace", crash)
+    monkeypatch.setattr(rt.io.os, "replace", crash)
     with pytest.raises(OSError):
         rt.main([str(bench), "--runs", *RUNS, "--out", str(out)])
     assert out.read_text() == "old table\n"                                     # the old file, whole
@@ -227,6 +228,45 @@ def test_the_write_is_atomic(bench, monkeypatch):
 def test_a_missing_benchmark_is_one_line(tmp_path, capsys):
     assert rt.main([str(tmp_path / "nothing"), "--runs", *RUNS, "--out", str(tmp_path / "r.md")]) == 2
     assert "benchmark.json is missing" in capsys.readouterr().err and not (tmp_path / "r.md").exists()
+
+
+def test_the_bookkeeping_fields_are_the_train_configs():
+    """One list of the fields that do not change a result, shared with a resume."""
+    from clfbev.run.train_config import BOOKKEEPING
+    assert rt.BOOKKEEPING is BOOKKEEPING
+    assert {"ckpt_minutes", "save_every_steps", "workers"} <= BOOKKEEPING
+
+
+def test_the_detection_classes_are_the_devkits():
+    from nuscenes.eval.detection.constants import DETECTION_NAMES
+    assert list(rt.DETECTION_CLASSES) == list(DETECTION_NAMES)
+
+
+@pytest.mark.parametrize("file, text, expected", [
+    ("benchmark.json", "{\"scenes\": 3,", "benchmark.json: not valid JSON"),
+    ("benchmark.json", "{\"scenes\": 3}", "benchmark.json: lacks the field 'samples_per_scene'"),
+    ("lidar_s0/run.json", "\x00\xff junk", "run.json: not valid JSON"),
+    ("lidar_s0/run.json", "{\"config\": {}, \"train\": {\"max_steps\": 10}}", "run.json: lacks the field 'train.batch_size'"),
+    ("lidar_s0/eval/metrics_summary.json", "{\"mean_ap\": 0.1}", "metrics_summary.json: lacks the field 'nd_score'"),
+    ("lidar_s0/eval/metrics_summary.json", "[1, 2]", "metrics_summary.json: lacks the field 'mean_ap'"),
+    ("lidar_s0/wall.jsonl", "{\"stage\": \"train\", \"seconds\": 3}\n", "wall.jsonl: line 1 lacks the field 'to_step'"),
+    ("lidar_s0/wall.jsonl", "[]\n", "wall.jsonl: line 1 is not a JSON object"),
+    ("data/v1.0-sim/sample.json", "[{\"token\": \"s00\"}]", "do not fit together"),
+])
+def test_a_junk_file_is_one_line_naming_it(bench, capsys, file, text, expected):
+    add_run(bench, "lidar_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)))
+    (bench / file).write_bytes(text.encode("latin-1"))
+    out = bench.parent / "r.md"
+    assert rt.main([str(bench), "--runs", *RUNS, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and expected in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_a_bad_run_name_is_one_line(bench, capsys):
+    assert rt.main([str(bench), "--runs", "lidar_s0", "full", "--out", str(bench.parent / "r.md")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "VARIANT_sSEED, got full" in err
 
 
 # ---------------------------------------------------------------- benchmark.sh
@@ -324,3 +364,28 @@ def test_the_data_identity_follows_the_layout_not_the_sensor_counts(tiny_dataset
     s["sim-train"], s["sim-val"] = s["sim-val"], s["sim-train"]
     splits.write_text(json.dumps(s))
     assert mod.data_identity(copy) != base
+
+
+@pytest.mark.parametrize("table, text, expected", [
+    ("category", None, "category.json is missing"),
+    ("instance", "[{\"token\": ", "instance.json: not valid JSON"),
+    ("sample_annotation", "[{\"instance_token\": \"x\"}]", "record 0 lacks the field 'translation'"),
+    ("sample_annotation", "{}", "expected a list of records"),
+])
+def test_a_junk_table_is_one_line_for_the_data_identity(tmp_path, capsys, table, text, expected):
+    spec = importlib.util.spec_from_file_location("data_identity", ROOT / "scripts" / "data_identity.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    tables = tmp_path / "data" / "v1.0-sim"
+    tables.mkdir(parents=True)
+    for name, records in (("category", [{"token": "c", "name": "car"}]), ("instance", [{"token": "i", "category_token": "c"}]),
+                          ("sample_annotation", []), ("splits", {"sim-train": []})):
+        (tables / f"{name}.json").write_text(json.dumps(records))
+    assert mod.main([str(tmp_path / "data")]) == 0
+    if text is None:
+        (tables / f"{table}.json").unlink()
+    else:
+        (tables / f"{table}.json").write_text(text)
+    assert mod.main([str(tmp_path / "data")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and expected in err and "Traceback" not in err

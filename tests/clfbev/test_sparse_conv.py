@@ -9,7 +9,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-import clfbev.ops.sparse_conv as sparse_conv
 from clfbev.ops.sparse_conv import (
     SparseConv3d,
     SparseTensor,
@@ -19,6 +18,7 @@ from clfbev.ops.sparse_conv import (
     subm_rulebook,
     use_spconv,
 )
+from clfbev.ops.sparse_conv import rulebook as rulebook_module
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -248,7 +248,9 @@ def test_subm_rulebook_is_symmetric():
 def test_dense_table_and_sorted_lookup_agree(monkeypatch):
     _, x, _ = random_grid(seed=9)
     dense = [subm_rulebook(x.coords, SHAPE, 3), strided_rulebook(x.coords, SHAPE, 3, 2, 1)]
-    monkeypatch.setattr(sparse_conv, "DENSE_TABLE_MAX_CELLS", 0)
+    monkeypatch.setattr(rulebook_module, "DENSE_TABLE_MAX_CELLS", 0)
+    # The patch reaches the builders: their lookups now take the sorted path.
+    assert rulebook_module._SiteLookup(torch.arange(3), 8).table is None
     sorted_ = [subm_rulebook(x.coords, SHAPE, 3), strided_rulebook(x.coords, SHAPE, 3, 2, 1)]
     for a, b in zip(dense, sorted_):
         assert torch.equal(a.neighbours, b.neighbours) and torch.equal(a.out_coords, b.out_coords)

@@ -53,3 +53,10 @@ def test_lidar_bev_ends_with_the_bands():
     torch.testing.assert_close(bev[:, -5:], sweep_occupancy(pts, torch.zeros(2000, dtype=torch.long), 1, RANGE,
                                                             (ny, nx), 5, 0.45))
     assert bev[0, -5:].exp().sub(1).sum().round() == 2000   # every point counted once
+    # The velocity tower gets the bands by name: encode() hands them over as the motion features.
+    with torch.no_grad():
+        feats, plain_feats = enc.encode([pts]), plain.encode([pts])
+    assert torch.equal(feats.bev, bev) and torch.equal(feats.motion, bev[:, -5:]) and plain_feats.motion is None
+    with torch.no_grad():
+        empty = enc.encode([pts[:0]])                   # no point: an empty BEV, empty motion features
+    assert empty.motion.shape == (1, 5, ny, nx) and not empty.bev.any()

@@ -17,8 +17,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from clfbev.checkpoint import load_checkpoint, load_model
-from clfbev.train import TrainConfig, epoch_batches, lr_at
+from clfbev.errors import ConfigError
+from clfbev.run.checkpoint import load_checkpoint, load_model
+from clfbev.run.epochs import epoch_batches
+from clfbev.run.train import lr_at
+from clfbev.run.train_config import TrainConfig
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -46,7 +49,7 @@ def micro(tmp_path_factory) -> Path:
 
 
 def clfbev(*args, check=True, **kw) -> subprocess.CompletedProcess:
-    proc = subprocess.run([sys.executable, "-m", "clfbev.cli", *map(str, args)], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "clfbev", *map(str, args)], capture_output=True, text=True,
                           env=ENV, **kw)
     if check and proc.returncode != 0:
         raise AssertionError(f"clfbev {' '.join(map(str, args))} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
@@ -72,9 +75,9 @@ def test_lr_schedule_warmup_then_cosine():
 
 def test_the_recipe_is_the_default_and_options_override_it(tmp_path):
     import argparse
-    from clfbev.train import add_arguments, recipe, train_config_from
+    from clfbev.run.train_config import add_train_arguments, recipe, train_config_from
     p = argparse.ArgumentParser()
-    add_arguments(p)
+    add_train_arguments(p)
     parse = lambda *a: train_config_from(p.parse_args(["--data", "d", "--out", "o", *a]))  # noqa: E731
     assert parse() == recipe("tiny", "full")
     assert parse("--variant", "camera") == recipe("tiny", "camera")
@@ -86,8 +89,61 @@ def test_the_recipe_is_the_default_and_options_override_it(tmp_path):
     tc = parse("--lr", "5e-4", "--no-augment", "--gt-paste", "0", "--epochs", "3")
     assert (tc.lr, tc.augment, tc.gt_paste, tc.epochs) == (5e-4, False, 0, 3)
     assert tc.batch_size == recipe("tiny", "full").batch_size
-    with pytest.raises(ValueError, match="--gt-paste-fade"):
+    with pytest.raises(ConfigError, match="--gt-paste-fade"):
         parse("--gt-paste-fade", "1.5")
+
+
+def test_every_setting_has_one_generated_option_with_its_range(tmp_path):
+    """The options are generated from TrainConfig's fields: each field has its option (also
+    min_lr_ratio and precise_bn_batches), no option repeats a default (left out = the recipe's
+    value), a preset's recipe sets only recipe fields, and the ranges come from the metadata."""
+    import argparse
+    from dataclasses import asdict, fields
+
+    from clfbev.config import VARIANTS
+    from clfbev.run.train_config import add_train_arguments, flag_of, recipe, train_config_from
+    p = argparse.ArgumentParser()
+    add_train_arguments(p)
+    by_dest = {a.dest: a for a in p._actions}
+    for f in fields(TrainConfig):
+        assert flag_of(f) in by_dest[f.name].option_strings and by_dest[f.name].default is None, f.name
+    parse = lambda *a: train_config_from(p.parse_args(["--data", "d", "--out", "o", *a]))  # noqa: E731
+    tc = parse("--min-lr-ratio", "0.1", "--precise-bn-batches", "0", "--save-every-steps", "5", "--no-gt-paste-balanced")
+    assert (tc.min_lr_ratio, tc.precise_bn_batches, tc.save_every_steps, tc.gt_paste_balanced) == (0.1, 0, 5, False)
+    recipe_fields = {f.name for f in fields(TrainConfig) if f.metadata["recipe"]}
+    for preset in ("tiny", "paper"):
+        for variant in VARIANTS:
+            changed = {k for k, v in asdict(recipe(preset, variant)).items() if v != getattr(TrainConfig(), k)}
+            assert changed <= recipe_fields, (preset, variant, changed)
+    for flag, value in [("--lr", "0"), ("--lr", "nan"), ("--warmup-frac", "1"), ("--min-lr-ratio", "-0.5"),
+                        ("--ckpt-minutes", "inf"), ("--seed", "-1"), ("--workers", "-2"), ("--epochs", "0")]:
+        with pytest.raises(ConfigError, match=flag):
+            parse(flag, value)
+    with pytest.raises(SystemExit):
+        p.parse_args(["--data", "d", "--out", "o", "--epochs", "2", "--max-steps", "3"])   # one length only
+
+
+def test_a_resume_ignores_exactly_the_bookkeeping_settings():
+    """Changing how often to save or how many loader processes still resumes; any other setting
+    is refused, naming it. A setting the checkpoint lacks has its default."""
+    from dataclasses import asdict, fields
+
+    from clfbev.errors import CheckpointError
+    from clfbev.run.train_config import BOOKKEEPING, check_resumable
+    assert BOOKKEEPING == {"ckpt_minutes", "save_every_steps", "workers"}
+    tc = TrainConfig()
+    saved = asdict(tc)
+    other = {bool: lambda v: not v, str: lambda v: v + "x", int: lambda v: v + 1, float: lambda v: v / 2 + 0.25}
+    for f in fields(TrainConfig):
+        changed = {**saved, f.name: other[type(getattr(tc, f.name))](getattr(tc, f.name))}
+        if f.name in BOOKKEEPING:
+            check_resumable(changed, tc, "last.pt")
+        else:
+            with pytest.raises(CheckpointError, match=rf"differs in: {f.name}\)"):
+                check_resumable(changed, tc, "last.pt")
+    check_resumable({k: v for k, v in saved.items() if k != "precise_bn_batches"}, tc, "last.pt")
+    with pytest.raises(CheckpointError, match="'train'"):
+        check_resumable({**saved, "momentum": 0.9}, tc, "last.pt")
 
 
 def test_precise_batchnorm_is_the_exact_average_over_its_batches(tiny_dataset, micro):
@@ -96,7 +152,7 @@ def test_precise_batchnorm_is_the_exact_average_over_its_batches(tiny_dataset, m
     from clfbev.config import load_config
     from clfbev.data import NuScenesDetection
     from clfbev.model import CLFusionBEV
-    from clfbev.train import precise_batchnorm
+    from clfbev.run.epochs import precise_batchnorm
     cfg = load_config(micro)
     ds = NuScenesDetection(tiny_dataset, "v1.0-sim", "sim-train", cfg.data_config())
     torch.manual_seed(0)
@@ -181,7 +237,7 @@ def test_sigkill_then_resume_gives_identical_weights(tiny_dataset, micro, tmp_pa
     clfbev(*train_args(tiny_dataset, tmp_path / "a", micro, *common))
 
     b = tmp_path / "b"
-    proc = subprocess.Popen([sys.executable, "-m", "clfbev.cli", *map(str, train_args(tiny_dataset, b, micro, *common))],
+    proc = subprocess.Popen([sys.executable, "-m", "clfbev", *map(str, train_args(tiny_dataset, b, micro, *common))],
                             env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline:
@@ -205,9 +261,9 @@ def test_sigkill_then_resume_gives_identical_weights(tiny_dataset, micro, tmp_pa
 
 def test_ddp_two_gloo_processes(tiny_dataset, micro, tmp_path):
     run = tmp_path / "ddp"
-    args = train_args(tiny_dataset, run, micro, "--max-steps", "2", "--val-split", "")[1:]   # no 'train'
+    args = train_args(tiny_dataset, run, micro, "--max-steps", "2", "--val-split", "")
     proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
-                           "--master_port", "29533", "-m", "clfbev.train", *map(str, args)],
+                           "--master_port", "29533", "-m", "clfbev", *map(str, args)],
                           capture_output=True, text=True, env=ENV, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert json.loads((run / "run.json").read_text())["world_size"] == 2
@@ -266,19 +322,20 @@ def test_bad_input_exits_2(tiny_dataset, micro, tmp_path):
 
 def test_non_finite_loss_stops_and_keeps_the_checkpoint(tiny_dataset, micro, tmp_path, monkeypatch):
     from clfbev.config import load_config
-    from clfbev.model import CLFusionBEV
-    from clfbev.train import TrainError, train
+    from clfbev.errors import TrainError
+    from clfbev.run import train as train_module
+    from clfbev.run.train import train
 
-    real_loss, calls = CLFusionBEV.loss, []
+    real_loss, calls = train_module.training_loss, []
 
-    def loss_then_nan(self, batch):
-        out = real_loss(self, batch)
+    def loss_then_nan(outputs, targets, cfg):
+        out = real_loss(outputs, targets, cfg)
         calls.append(1)
         if len(calls) == 3:
             out = {**out, "loss": out["loss"] * float("nan")}
         return out
 
-    monkeypatch.setattr(CLFusionBEV, "loss", loss_then_nan)
+    monkeypatch.setattr(train_module, "training_loss", loss_then_nan)
     tc = TrainConfig(max_steps=5, batch_size=1, val_split="", save_every_steps=1)
     with pytest.raises(TrainError, match="non-finite loss .* step 3.*last.pt is kept"):
         train(tiny_dataset, tmp_path / "run", load_config(micro), "full", tc, progress=False)
@@ -290,7 +347,7 @@ def test_non_finite_loss_stops_and_keeps_the_checkpoint(tiny_dataset, micro, tmp
 def test_code_version_is_dirty_only_for_the_package_files(tmp_path):
     """A run's code version reads -dirty when the package's own tracked files are modified, not
     when a doc or a script beside it is."""
-    from clfbev.train import code_version
+    from clfbev.run.run_log import code_version
 
     def git(*args):
         subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path, check=True,

@@ -15,16 +15,18 @@ import numpy as np
 import pytest
 import torch
 
-from clfbev import cli
 from clfbev.anchors import make_anchors
 from clfbev.attention import BEVAttention
-from clfbev.checkpoint import save_checkpoint
 from clfbev.config import tiny
 from clfbev.data import Batch
+from clfbev.errors import EXIT_BAD_INPUT, ConfigError
 from clfbev.head import Detections
 from clfbev.model import CLFusionBEV
-from clfbev.visualize import (MASS, MIN_ZOOM_CELLS, AttentionMap, BEVScene, Query, _split_block, attention_maps,
-                              attention_strip, cell_of, choose_query, shown_mass, zoom_extent)
+from clfbev.run import cli
+from clfbev.run.attention_plot import _split_block, attention_strip
+from clfbev.run.attention_query import (MASS, MIN_ZOOM_CELLS, AttentionMap, BEVScene, Query, attention_maps, cell_of,
+                                        choose_query, shown_mass, zoom_extent)
+from clfbev.run.checkpoint import save_checkpoint
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -75,10 +77,10 @@ def test_without_detection_the_query_is_the_gt_box_nearest_the_ego():
 
 
 def test_a_query_point_off_the_map_or_nothing_to_query_is_refused():
-    with pytest.raises(ValueError, match="outside the BEV map"):
+    with pytest.raises(ConfigError, match="outside the BEV map"):
         cell_of((51.2, 0.0), CFG.pc_range, CFG.head_feature_size)      # the range is half-open
     assert cell_of((51.19, -51.2), CFG.pc_range, CFG.head_feature_size) == (0, 127)
-    with pytest.raises(ValueError, match="--cell"):
+    with pytest.raises(ConfigError, match="--cell"):
         choose_query(NO_DETS, *NO_GT, CLASSES, CFG.pc_range, CFG.head_feature_size)
     q = choose_query(NO_DETS, *NO_GT, CLASSES, CFG.pc_range, CFG.head_feature_size, xy=(10.0, 5.0))
     assert q.cell == (70, 76) and q.box is None        # floor(56.2 / 0.8), floor(61.2 / 0.8)
@@ -169,7 +171,7 @@ def test_model_maps_are_per_head_distributions_over_the_bev():
         assert extent == (16, 24, 40, 48)                    # the query's 8 x 8 window
         assert shown_mass(m.weights, extent) == pytest.approx(np.ones(MICRO.attn_heads), abs=1e-5)
     assert [m.name for m in attention_maps(CLFusionBEV(MICRO, "mcm"), _batch(), (0, 0))] == ["MCM"]
-    with pytest.raises(ValueError, match="variant 'concat' has no attention"):
+    with pytest.raises(ConfigError, match="variant 'concat' has no attention"):
         attention_maps(CLFusionBEV(MICRO, "concat"), _batch(), (0, 0))
 
 
@@ -261,10 +263,10 @@ def test_show_attention_of_a_variant_without_attention_exits_2_in_one_line(tiny_
     rc = cli.main(["show", "--data", str(tiny_dataset), "--results", str(empty_results), "--out", str(out),
                    "--attention", "--ckpt", str(micro_ckpts["concat"])])
     err = capsys.readouterr().err
-    assert rc == cli.EXIT_BAD_INPUT and not out.exists()
+    assert rc == EXIT_BAD_INPUT and not out.exists()
     assert err.count("\n") == 1 and "variant 'concat', which has no MCM or BSM" in err
     assert cli.main(["show", "--data", str(tiny_dataset), "--results", str(empty_results), "--out", str(out),
-                     "--attention"]) == cli.EXIT_BAD_INPUT
+                     "--attention"]) == EXIT_BAD_INPUT
     assert "--attention needs --ckpt" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
         cli.main(["show", "--data", str(tiny_dataset), "--results", str(empty_results), "--out", str(out),

@@ -1,121 +1,37 @@
-"""Pure-torch 3D sparse convolution (submanifold and strided), for CPU and GPU.
+"""Rulebooks of a 3D sparse convolution: which input row each output row reads through each tap.
 
-A sparse tensor is a list of active sites ``coords (N, 4) = (batch, z, y, x)`` with features
-``(N, C)``. A convolution is driven by a *rulebook*: for every output row and kernel tap k, the
-input row it reads (``neighbours``, (N_out, K), with N_in standing for "none"). The convolution
-is then an implicit GEMM, no scatter:
+Sites are ``coords (N, 4) = (batch, z, y, x)`` rows. Rulebooks are built without sorting: on a
+grid padded by the kernel's reach, the key of a site's tap cell is the site's key plus a constant
+per tap, and a dense int64 table over the batch of padded grids maps cells to rows (sorted keys
+and ``torch.searchsorted`` above ``DENSE_TABLE_MAX_CELLS`` cells). Python loops run over
+residue classes, never over sites.
 
-    out = [x_pad[neighbours[:, 0]], ..., x_pad[neighbours[:, K-1]]] @ [W_0; ...; W_{K-1}]
-
-(x_pad = the features plus one zero row, which the missing taps read). Dense over the taps, so
-it multiplies zeros where a tap has no input, but one deep GEMM per chunk of rows runs far
-faster on CPU than K skinny ones followed by ``index_add_``, and a conv with C_in > C_out
-multiplies first and gathers the narrow products instead (``embedding_bag``).
-
-The backward is hand-written (``_RulebookConv``) so that it gathers too: the input grads read
-the output grads through the *reverse* taps (which output each input feeds through tap k). For
-a submanifold conv these are the neighbours themselves with the taps mirrored (offset d and -d
-give the same pairs swapped), i.e. the same table with the weight flipped; for a strided conv
-each input can only feed through the taps of its residue class ``(i + p) mod s`` (1 in 8 of a
-3^3 kernel of stride 2), and the reverse tables keep only those.
-
-Rulebooks are built without sorting: on a grid padded by the kernel's reach, the key of a
-site's tap cell is the site's key plus a constant per tap, and a dense int64 table over the
-batch of padded grids maps cells to rows (sorted keys and ``torch.searchsorted`` above
-``DENSE_TABLE_MAX_CELLS`` cells). Python loops run over chunks of rows and residue classes,
-never over sites.
-
-Semantics match ``nn.Conv3d`` (cross-correlation, weight ``(out, in, kz, ky, kx)``, same init):
-
-- ``SubMConv3d``: stride 1, padding k // 2, and the output sites are the input sites. Its output
-  at an active site equals a dense conv of the zero-filled input there.
-- ``SparseConv3d``: any kernel/stride/padding; output spatial shape
-  ``(n + 2 p - k) // s + 1`` as in torch; output sites are exactly the positions that receive at
-  least one active input. At all other positions a dense conv would give just the bias.
-
-Building a network: normalisation and activation act on the features only, e.g.::
-
-    x = conv(x)                                   # SparseTensor
-    x = x.replace_features(torch.relu(bn(x.features)))   # bn = nn.BatchNorm1d(C)
-
-(BatchNorm1d over active sites is what spconv networks do; inactive sites stay empty.) Several
-SubMConv3d layers on the same sites can share one rulebook: build it once with
-``subm_rulebook`` and pass it to each ``forward``.
-
-Determinism: nothing in the convolution accumulates through a scatter (every output value is
-one GEMM or ``embedding_bag`` sum in a fixed order), so results are bit-reproducible on CPU. The
-same holds by construction on CUDA, where no atomics are used either; that has not been tested.
-
-Optional backend: spconv 2.x is much faster on CUDA, but it cannot train on CPU (its backward
-calls torch.cuda), which is why this pure-torch path exists. ``use_spconv(device)`` tells a caller
-whether that backend could be used; the modules here always run the pure-torch path.
+- ``subm_rulebook``: a submanifold conv (stride 1, padding k // 2, output sites = input sites).
+- ``strided_rulebook``: a regular conv with any kernel, stride and padding; the output sites are
+  exactly the positions that receive at least one active input. It also keeps the reverse taps
+  (which output each input feeds) per residue class, for the backward.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import itertools
 import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
-from torch import Tensor, nn
-
-try:  # optional GPU backend; any failure (missing, ABI mismatch, no CUDA libs) just disables it
-    import spconv.pytorch  # noqa: F401
-
-    SPCONV_AVAILABLE = True
-except Exception:  # noqa: BLE001 - an import of a compiled extension can raise more than ImportError
-    SPCONV_AVAILABLE = False
-
-
-def use_spconv(device: torch.device | str) -> bool:
-    """True only when ``device`` is CUDA and spconv imports (spconv cannot train on CPU)."""
-    return SPCONV_AVAILABLE and torch.device(device).type == "cuda"
-
+from torch import Tensor
 
 Triple = tuple[int, int, int]
 
 
-def _triple(v: int | tuple[int, ...]) -> Triple:
+def as_triple(v: int | tuple[int, ...]) -> Triple:
+    """An int or 3 ints -> (int, int, int) per axis (z, y, x)."""
     if isinstance(v, int):
         return (v, v, v)
     if len(v) != 3:
         raise ValueError(f"expected an int or 3 ints, got {v}")
     return (int(v[0]), int(v[1]), int(v[2]))
-
-
-@dataclass(frozen=True)
-class SparseTensor:
-    """Active sites of a batch of 3D grids.
-
-    Attributes
-    ----------
-    features : (N, C) float; one row per active site.
-    coords : (N, 4) long; (batch, z, y, x) of each site, unique rows, each inside the grid.
-    spatial_shape : (nz, ny, nx).
-    batch_size : B.
-    """
-
-    features: Tensor
-    coords: Tensor
-    spatial_shape: Triple
-    batch_size: int
-
-    def dense(self) -> Tensor:
-        """The zero-filled dense grid, (B, C, nz, ny, nx); differentiable w.r.t. the features."""
-        nz, ny, nx = self.spatial_shape
-        c = self.features.shape[1]
-        # One flat index_copy (not a 4-index put): faster on CPU, and its grad is one index_select.
-        cells = self.features.new_zeros((self.batch_size * nz * ny * nx, c))
-        cells = cells.index_copy(0, encode_coords(self.coords, self.spatial_shape), self.features)
-        return cells.view(self.batch_size, nz, ny, nx, c).permute(0, 4, 1, 2, 3).contiguous()
-
-    def replace_features(self, features: Tensor) -> SparseTensor:
-        """Same sites, new (N, C') features (after BatchNorm1d, ReLU, ...)."""
-        return dataclasses.replace(self, features=features)
 
 
 def encode_coords(coords: Tensor, spatial_shape: Triple) -> Tensor:
@@ -299,7 +215,7 @@ def subm_rulebook(coords: Tensor, spatial_shape: Triple, kernel_size: int | Trip
     spatial_shape : (nz, ny, nx).
     kernel_size : odd ints.
     """
-    ks = _triple(kernel_size)
+    ks = as_triple(kernel_size)
     if any(k % 2 == 0 for k in ks):
         raise ValueError(f"SubMConv3d needs odd kernel sizes, got {ks}")
     coords, shape = coords.long(), tuple(spatial_shape)
@@ -325,7 +241,7 @@ def strided_rulebook(
     cross-correlation), i.e. ``i + p - k`` is a non-negative multiple of s below s * n_out.
     Output sites come out sorted by (b, z, y, x).
     """
-    ks, st, pd = _triple(kernel_size), _triple(stride), _triple(padding)
+    ks, st, pd = as_triple(kernel_size), as_triple(stride), as_triple(padding)
     coords = coords.long()
     out_shape = tuple((n + 2 * p - k) // s + 1 for n, k, s, p in zip(spatial_shape, ks, st, pd))
     if min(out_shape) < 1:
@@ -403,195 +319,3 @@ def _invert_taps(groups: tuple[TapGroup, ...], n_out: int, n_in: int, K: int, de
         slots = g.outputs * K + g.taps
         table.index_copy_(0, slots.reshape(-1), g.rows[:, None].expand_as(slots).reshape(-1))
     return table.view(n_out + 1, K)[:n_out]
-
-
-# Rows are gathered in chunks of about this many values (1 MB of float32): the gathered block
-# stays in cache for its GEMM (2^18 was faster than 2^16, 2^20 and 2^22 on a 3^3, 32-channel
-# layer), and memory does not grow with K * N.
-CHUNK_VALUES = 1 << 18
-
-
-def _row_chunks(n_rows: int, row_values: int) -> list[slice]:
-    step = max(1, CHUNK_VALUES // max(1, row_values))
-    return [slice(i, min(i + step, n_rows)) for i in range(0, n_rows, step)]
-
-
-def _with_zero_row(x: Tensor) -> Tensor:
-    """(N, C) -> (N + 1, C); row N is what a missing neighbour (index N) reads."""
-    return torch.cat([x, x.new_zeros((1, x.shape[1]))])
-
-
-def _conv_forward(x: Tensor, weight: Tensor, neighbours: Tensor) -> Tensor:
-    """(N_in, C_in) features, weight (C_out, C_in, K), neighbours (N_out, K) -> (N_out, C_out).
-
-    out[o] = sum_k x[neighbours[o, k]] @ W_k^T, computed as dense GEMMs over all K taps (missing
-    taps read a zero row) so that nothing is scattered. The gather runs on the narrower side:
-    - C_in <= C_out: gather x rows into (n, K * C_in), one GEMM with the (K * C_in, C_out) weight;
-    - C_in > C_out: first every input through every tap, (N_in, K * C_out), then sum tap k's
-      block of each neighbour (one ``embedding_bag``).
-    """
-    c_out, c_in, K = weight.shape
-    n_out = neighbours.shape[0]
-    if c_in <= c_out:
-        out = x.new_empty((n_out, c_out))
-        x_pad = _with_zero_row(x)
-        w = weight.permute(2, 1, 0).reshape(K * c_in, c_out)
-        for rows in _row_chunks(n_out, K * c_in):
-            gathered = x_pad.index_select(0, neighbours[rows].reshape(-1)).view(-1, K * c_in)
-            torch.mm(gathered, w, out=out[rows])
-    else:
-        # (N_in + 1, K * C_out) with a zero last row, written in place (a cat would copy it all).
-        y = x.new_empty((x.shape[0] + 1, K * c_out))
-        torch.mm(x, weight.permute(1, 2, 0).reshape(c_in, K * c_out), out=y[:-1])
-        y[-1].zero_()
-        y = y.view(-1, c_out)
-        taps = torch.arange(K, device=x.device)
-        # embedding_bag sums the K gathered rows of each bag without materialising (N_out, K, C_out).
-        out = F.embedding_bag(neighbours * K + taps, y, mode="sum")
-    return out
-
-
-def _conv_backward(
-    x: Tensor, grad_out: Tensor, weight: Tensor, reverse: Tensor, need_x: bool, need_w: bool
-) -> tuple[Tensor | None, Tensor | None]:
-    """Gradients of ``_conv_forward`` from reverse taps, without any scatter.
-
-    x (n, C_in) are input rows, ``reverse`` (n, K) the output row each feeds through each of the
-    K taps of ``weight`` (C_out, C_in, K) (``N_out`` where none). With G = the output grads
-    gathered through ``reverse``, (n, K * C_out) (block k holds grad_out[reverse[i, k]]):
-        grad_x = G @ [W_0; ...; W_{K-1}]   (each W_k (C_out, C_in))
-        grad_W_k = x^T @ G_k
-    Returns grad_x (n, C_in) and grad_w (C_out, C_in, K) (None where not needed).
-    """
-    c_out, c_in, K = weight.shape
-    n_in = x.shape[0]
-    g_pad = _with_zero_row(grad_out)
-    w = weight.permute(2, 0, 1).reshape(K * c_out, c_in)
-    grad_x = x.new_empty((n_in, c_in)) if need_x else None
-    grad_w = x.new_zeros((c_in, K * c_out)) if need_w else None
-    for rows in _row_chunks(n_in, K * c_out):
-        gathered = g_pad.index_select(0, reverse[rows].reshape(-1)).view(-1, K * c_out)
-        if need_x:
-            torch.mm(gathered, w, out=grad_x[rows])
-        if need_w:
-            grad_w.addmm_(x[rows].t(), gathered)
-    if need_w:
-        grad_w = grad_w.view(c_in, K, c_out).permute(2, 0, 1)
-    return grad_x, grad_w
-
-
-class _RulebookConv(torch.autograd.Function):
-    """features (N_in, C_in), weight (C_out, C_in, K) -> (N_out, C_out) through a rulebook.
-
-    A custom backward because autograd of gather -> GEMM would scatter (index_add) the input
-    grads; the reverse taps turn that scatter into a gather. For a submanifold rulebook the
-    reverse taps are the neighbours read with the taps reversed, i.e. with the weight flipped.
-    """
-
-    @staticmethod
-    def forward(ctx, features: Tensor, weight: Tensor, neighbours: Tensor, reverse) -> Tensor:
-        ctx.save_for_backward(features, weight, neighbours)
-        ctx.reverse = reverse  # tuple[TapGroup, ...] | None; index tensors, never differentiated
-        return _conv_forward(features, weight, neighbours)
-
-    @staticmethod
-    def backward(ctx, grad_out: Tensor):
-        features, weight, neighbours = ctx.saved_tensors
-        need_x, need_w = ctx.needs_input_grad[:2]
-        grad_out = grad_out.contiguous()
-        if ctx.reverse is None:
-            grad_x, grad_w = _conv_backward(features, grad_out, weight.flip(2), neighbours, need_x, need_w)
-            return grad_x, grad_w.flip(2) if need_w else None, None, None
-        # Each residue class owns its taps, so its rows and weight taps are written once each.
-        grad_x = torch.zeros_like(features) if need_x else None
-        grad_w = torch.zeros_like(weight) if need_w else None
-        for group in ctx.reverse:
-            x = features.index_select(0, group.rows)
-            gx, gw = _conv_backward(x, grad_out, weight.index_select(2, group.taps), group.outputs, need_x, need_w)
-            if need_x:
-                grad_x.index_copy_(0, group.rows, gx)
-            if need_w:
-                grad_w.index_copy_(2, group.taps, gw)
-        return grad_x, grad_w, None, None
-
-
-def apply_rulebook(features: Tensor, weight: Tensor, bias: Tensor | None, rb: Rulebook) -> Tensor:
-    """Sparse conv given its rulebook.
-
-    Parameters
-    ----------
-    features : (N_in, C_in).
-    weight : (C_out, C_in, kz, ky, kx), the nn.Conv3d layout.
-    bias : (C_out,) or None.
-
-    Returns
-    -------
-    (N_out, C_out) features at ``rb.out_coords``.
-    """
-    w = weight.reshape(weight.shape[0], weight.shape[1], -1)  # (C_out, C_in, K)
-    out = _RulebookConv.apply(features.contiguous(), w, rb.neighbours, rb.reverse)
-    if bias is not None:
-        out = out + bias
-    return out
-
-
-class _SparseConvBase(nn.Module):
-    """Parameters laid out and initialised exactly like ``nn.Conv3d`` (copyable both ways)."""
-
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int | Triple, bias: bool):
-        super().__init__()
-        self.in_channels, self.out_channels = in_channels, out_channels
-        self.kernel_size = _triple(kernel_size)
-        self.weight = nn.Parameter(torch.empty(out_channels, in_channels, *self.kernel_size))
-        self.bias = nn.Parameter(torch.empty(out_channels)) if bias else None
-        self.reset_parameters()
-
-    def reset_parameters(self) -> None:
-        # Same as nn.Conv3d.reset_parameters.
-        nn.init.kaiming_uniform_(self.weight, a=math.sqrt(5))
-        if self.bias is not None:
-            fan_in = self.in_channels * math.prod(self.kernel_size)
-            bound = 1 / math.sqrt(fan_in) if fan_in > 0 else 0
-            nn.init.uniform_(self.bias, -bound, bound)
-
-    def _check(self, x: SparseTensor) -> None:
-        if x.features.ndim != 2 or x.features.shape[1] != self.in_channels:
-            raise ValueError(f"expected features (N, {self.in_channels}), got {tuple(x.features.shape)}")
-
-
-class SubMConv3d(_SparseConvBase):
-    """Submanifold sparse conv: stride 1, padding k // 2, output sites = input sites."""
-
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int | Triple = 3, bias: bool = True):
-        super().__init__(in_channels, out_channels, kernel_size, bias)
-        if any(k % 2 == 0 for k in self.kernel_size):
-            raise ValueError(f"SubMConv3d needs odd kernel sizes, got {self.kernel_size}")
-
-    def forward(self, x: SparseTensor, rulebook: Rulebook | None = None) -> SparseTensor:
-        """(N, C_in) at x.coords -> (N, C_out) at the same coords; ``rulebook`` may be shared."""
-        self._check(x)
-        rb = rulebook if rulebook is not None else subm_rulebook(x.coords, x.spatial_shape, self.kernel_size)
-        return x.replace_features(apply_rulebook(x.features, self.weight, self.bias, rb))
-
-
-class SparseConv3d(_SparseConvBase):
-    """Regular (usually strided) sparse conv; output sites = positions receiving any input."""
-
-    def __init__(
-        self,
-        in_channels: int,
-        out_channels: int,
-        kernel_size: int | Triple,
-        stride: int | Triple = 1,
-        padding: int | Triple = 0,
-        bias: bool = True,
-    ):
-        super().__init__(in_channels, out_channels, kernel_size, bias)
-        self.stride, self.padding = _triple(stride), _triple(padding)
-
-    def forward(self, x: SparseTensor) -> SparseTensor:
-        """(N_in, C_in) on spatial_shape -> (N_out, C_out) on the strided output grid."""
-        self._check(x)
-        rb = strided_rulebook(x.coords, x.spatial_shape, self.kernel_size, self.stride, self.padding)
-        out = apply_rulebook(x.features, self.weight, self.bias, rb)
-        return SparseTensor(out, rb.out_coords, rb.out_shape, x.batch_size)

@@ -1,0 +1,98 @@
+"""The encoder checkpoint: what ``clfbev pretrain`` writes and ``clfbev train --image-init PATH``
+loads into the detector's camera encoder.
+
+A plain dict, written atomically (:func:`clfbev.io.save_torch`) and read with
+``torch.load(weights_only=True)``:
+
+- ``format``: :data:`ENCODER_FORMAT`;
+- ``encoder``: the state dict of :class:`clfbev.camera_encoder.CameraEncoder` (ResNet, FPN,
+  depth net, and the semantic head where the config has one), nothing else;
+- ``camera``: the :class:`clfbev.config.ModelConfig` fields the encoder depends on
+  (:data:`CAMERA_FIELDS`);
+- ``command``: the command line that made it; ``data``: the identity of the pretraining set
+  (:func:`clfbev.pretrain_data.data_identity`); ``step``; ``code_version``.
+
+Loading refuses, with one :class:`clfbev.errors.CheckpointError` naming the file, a file that is
+not such a checkpoint, one made for other camera fields, and one whose tensors do not have
+exactly the encoder's names and shapes.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from clfbev import io
+from clfbev.config import ModelConfig
+from clfbev.errors import CheckpointError
+
+ENCODER_FORMAT = "clfbev-encoder-v1"
+CAMERA_FIELDS = ("image_size", "cam_depth", "cam_width", "fpn_ch", "context_ch", "depth_bins", "feature_stride")
+
+
+def camera_fields(cfg: ModelConfig) -> dict:
+    """The fields of ``cfg`` the camera encoder's weights depend on (YAML/JSON-safe)."""
+    plain = cfg.to_dict()
+    return {k: plain[k] for k in CAMERA_FIELDS}
+
+
+def save_encoder(path: str | Path, encoder: nn.Module, cfg: ModelConfig, command: list[str], data: dict,
+                 step: int, version: str) -> Path:
+    """Write the encoder checkpoint of ``encoder`` to ``path``, atomically."""
+    return io.save_torch(path, {"format": ENCODER_FORMAT, "encoder": encoder.state_dict(),
+                                "camera": camera_fields(cfg), "command": list(command), "data": data,
+                                "step": step, "code_version": version})
+
+
+def read_torch(path: Path) -> object:
+    """``torch.load(path, weights_only=True)`` on the CPU; any failure a CheckpointError naming the file."""
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        # Any bytes may be in a file the user names; the unpickler fails on them as it may.
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({first})") from None
+
+
+def load_encoder_checkpoint(path: str | Path) -> dict:
+    """The encoder checkpoint at ``path``, checked to be one."""
+    path = Path(path)
+    ckpt = read_torch(path)
+    if not isinstance(ckpt, dict) or ckpt.get("format") != ENCODER_FORMAT:
+        raise CheckpointError(f"{path} is not an encoder checkpoint ({ENCODER_FORMAT}; `clfbev pretrain` writes one)")
+    weights = ckpt.get("encoder")
+    if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor) for v in weights.values()):
+        raise CheckpointError(f"encoder checkpoint {path}: field 'encoder' is not a state dict of tensors")
+    bad = next((k for k, v in weights.items() if v.is_floating_point() and not torch.isfinite(v).all()), None)
+    if bad is not None:
+        raise CheckpointError(f"encoder checkpoint {path}: the weights '{bad}' hold non-finite values")
+    if not isinstance(ckpt.get("camera"), dict):
+        raise CheckpointError(f"encoder checkpoint {path}: field 'camera' is missing")
+    return ckpt
+
+
+def load_image_init(encoder: nn.Module, path: str | Path, cfg: ModelConfig) -> dict:
+    """Load the encoder checkpoint at ``path`` into ``encoder`` (the detector's camera encoder,
+    built from ``cfg``): every tensor of the encoder, and only those, after checking the camera
+    fields and every name and shape. Returns the checkpoint."""
+    ckpt = load_encoder_checkpoint(path)
+    mine = camera_fields(cfg)
+    diff = [k for k in CAMERA_FIELDS if ckpt["camera"].get(k) != mine[k]]
+    if diff:
+        differs = ", ".join(f"{k} {ckpt['camera'].get(k)} != {mine[k]}" for k in diff)
+        raise CheckpointError(f"encoder checkpoint {path} was pretrained for another camera (differs in: {differs})")
+    want = encoder.state_dict()
+    weights = ckpt["encoder"]
+    missing, extra = sorted(set(want) - set(weights)), sorted(set(weights) - set(want))
+    if missing or extra:
+        raise CheckpointError(f"encoder checkpoint {path} is of another architecture (missing {missing[:3]}, "
+                              f"unexpected {extra[:3]})")
+    bad = next((k for k in want if weights[k].shape != want[k].shape), None)
+    if bad is not None:
+        raise CheckpointError(f"encoder checkpoint {path}: tensor '{bad}' has shape {tuple(weights[bad].shape)}, "
+                              f"the encoder's is {tuple(want[bad].shape)}")
+    encoder.load_state_dict(weights, strict=True)
+    return ckpt

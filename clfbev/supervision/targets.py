@@ -1,0 +1,130 @@
+"""Every training target of a batch, built with the batch in the loader, and the training loss
+over them.
+
+:class:`TrainingCollate` is the loader's ``collate_fn``: samples -> (:class:`clfbev.data.Batch`,
+:class:`Targets`), so the anchor assignment, the lidar points re-projected into the cameras and
+their classes are computed in the loader workers, beside the next step's training.
+:func:`training_loss` takes the model's outputs and those targets:
+
+    loss = detection loss (paper eq. 9) + depth weight x depth loss + semantic weight x semantic loss
+
+the camera terms only for the variants with a camera (and the semantic one only with a
+perspective head, ``cfg.loss.semantic > 0``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from clfbev.anchors import make_anchors, match_thresholds
+from clfbev.camera_encoder import CameraGeometry
+from clfbev.config import ModelConfig
+from clfbev.data import Batch, Sample, collate
+from clfbev.outputs import ModelOutputs
+from clfbev.supervision.assign import AnchorTargets, assign_targets, stack_targets
+from clfbev.supervision.depth import bins_of, depth_loss, nearest_lidar_points
+from clfbev.supervision.losses import detection_loss
+from clfbev.supervision.perspective import cell_classes, semantic_loss
+
+
+@dataclass(frozen=True)
+class Targets:
+    """The training targets of a batch of B samples with N cameras.
+
+    anchor : :class:`AnchorTargets` with a leading B, anchors in the order ``(iy, ix, cls, rot)``.
+    depth : (B, N, h, w) int64 depth bin of each camera feature cell's nearest key-frame lidar
+        point, -1 where none (:mod:`clfbev.supervision.depth`); None without cameras.
+    semantic : (B, N, h, w) int64 class of that point's box, n_classes for background, -1 where
+        none (:mod:`clfbev.supervision.perspective`); None without a perspective head.
+    """
+
+    anchor: AnchorTargets
+    depth: Tensor | None = None
+    semantic: Tensor | None = None
+
+    def to(self, device: torch.device | str) -> "Targets":
+        """A copy with every tensor on ``device``."""
+        return Targets(self.anchor.to(device),
+                       None if self.depth is None else self.depth.to(device),
+                       None if self.semantic is None else self.semantic.to(device))
+
+
+@torch.no_grad()
+def build_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool = True) -> Targets:
+    """The :class:`Targets` of ``batch`` (any device) for a model of ``cfg`` with ``anchors``
+    (ny, nx, n_cls, n_rot, 7), :func:`clfbev.anchors.make_anchors` of the config; the camera
+    targets only with ``cameras``."""
+    thresholds = match_thresholds(cfg.class_names)
+    anchor = stack_targets([
+        assign_targets(anchors, boxes[:, : cfg.code_size], labels, thresholds, n_dir_bins=cfg.n_dir_bins)
+        for boxes, labels in zip(batch.gt_boxes, batch.gt_labels)
+    ])
+    if not cameras:
+        return Targets(anchor)
+    cams = CameraGeometry(batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug, cfg.image_size,
+                          cfg.feature_stride, cfg.depth_bins)
+    # Pasted points have no pixels: they are no camera's target.
+    depth, nearest = nearest_lidar_points(batch.points, cams, batch.pasted or None)
+    semantic = None
+    if cfg.loss.semantic > 0:
+        semantic = cell_classes(nearest, batch.points, batch.gt_boxes, batch.gt_labels, len(cfg.class_names))
+    return Targets(anchor, bins_of(depth, cfg.depth_bins), semantic)
+
+
+class TrainingCollate:
+    """The training loader's ``collate_fn``: samples -> (Batch, :class:`Targets`).
+
+    Picklable (the loader sends it to its workers); the anchors are made from ``cfg`` in each
+    process on first use. ``cameras=False`` (the ``lidar`` variant) skips the camera targets.
+    """
+
+    def __init__(self, cfg: ModelConfig, cameras: bool = True) -> None:
+        self.cfg, self.cameras = cfg, cameras
+        self._anchors: Tensor | None = None
+
+    def __call__(self, samples: list[Sample]) -> tuple[Batch, Targets]:
+        batch = collate(samples)
+        return batch, build_targets(batch, self.cfg, self.anchors, self.cameras)
+
+    @property
+    def anchors(self) -> Tensor:
+        """(ny, nx, n_cls, n_rot, 7) the anchors of the config, as the model makes them."""
+        if self._anchors is None:
+            cfg = self.cfg
+            self._anchors = make_anchors(cfg.class_names, cfg.head_feature_size, cfg.pc_range, cfg.anchor_rotations)
+        return self._anchors
+
+    def __getstate__(self) -> dict:
+        return {"cfg": self.cfg, "cameras": self.cameras, "_anchors": None}    # anchors: rebuilt, not shipped
+
+
+def training_loss(outputs: ModelOutputs, targets: Targets, cfg: ModelConfig) -> dict[str, Tensor]:
+    """The training loss of a batch: the dict of :func:`clfbev.supervision.losses.detection_loss`
+    (``loss``, ``loss_cls``, ``loss_reg``, ``loss_reg_theta``, ``loss_dir``, ``loss_vel``,
+    ``num_pos``) with, where the model has a camera, ``loss_depth`` (reported even at weight 0)
+    and, with a perspective head, ``loss_semantic``, both unweighted; ``loss`` is the weighted
+    total."""
+    losses = detection_loss(outputs.head, targets.anchor, cfg.loss, cfg.velocity_balance, cfg.velocity_beta,
+                            cfg.velocity_weight)
+    if outputs.depth is None:
+        return losses
+    losses["loss_depth"] = depth_loss(outputs.depth, targets.depth)
+    if outputs.semantics is not None:
+        losses["loss_semantic"] = semantic_loss(outputs.semantics, targets.semantic, cfg.loss.focal_alpha,
+                                                cfg.loss.focal_gamma)
+    if cfg.loss.depth > 0:
+        losses["loss"] = losses["loss"] + cfg.loss.depth * losses["loss_depth"]
+    if outputs.semantics is not None:
+        losses["loss"] = losses["loss"] + cfg.loss.semantic * losses["loss_semantic"]
+    return losses
+
+
+def batch_loss(model, batch: Batch) -> dict[str, Tensor]:
+    """:func:`training_loss` of ``model`` (a :class:`clfbev.model.CLFusionBEV`) on ``batch``, its
+    targets built here as :class:`TrainingCollate` builds them in the loader: for a single batch
+    outside the training loop (tests, benchmarks)."""
+    targets = build_targets(batch, model.cfg, model.anchors, cameras=model.camera_encoder is not None)
+    return training_loss(model(batch), targets, model.cfg)
