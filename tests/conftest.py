@@ -44,3 +44,27 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+# A model a few times smaller than tiny, for tests that train or load one in seconds.
+MICRO_YAML = """\
+preset: tiny
+image_size: [64, 176]
+cam_width: 8
+fpn_ch: 32
+context_ch: 16
+vfe_ch: 16
+fusion_dim: 32
+attn_heads: 2
+bev_channels: [16, 32]
+bev_blocks: 1
+bev_up_ch: 16
+"""
+
+
+@pytest.fixture(scope="session")
+def micro(tmp_path_factory) -> Path:
+    """A YAML config file of the micro model."""
+    path = tmp_path_factory.mktemp("cfg") / "micro.yaml"
+    path.write_text(MICRO_YAML)
+    return path

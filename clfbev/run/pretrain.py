@@ -38,7 +38,7 @@ from clfbev.run.checkpoint import Checkpoints
 from clfbev.run.epochs import epoch_batches
 from clfbev.run.image_init import read_torch, save_encoder
 from clfbev.run.run_log import ScalarLog, code_version, write_run_json
-from clfbev.run.train import Loop, TrainState, lr_at, optimizer_step
+from clfbev.run.train import Loop, TrainState, lr_at, optimizer_step, restore_state
 from clfbev.run.train_config import VERSION, setting
 from clfbev.supervision.dense import BOX_CODE, LIDARSEG_CLASSES, WEIGHTS, DenseTargets, dense_losses
 
@@ -199,14 +199,7 @@ def _start_state(cfg: ModelConfig, pc: PretrainConfig, ckpt: dict | None) -> Tra
     model = PretrainNet(cfg)
     state = TrainState(model, torch.optim.AdamW(model.parameters(), lr=pc.lr, weight_decay=pc.weight_decay))
     if ckpt is not None:
-        try:
-            model.load_state_dict(ckpt["model"])
-            state.opt.load_state_dict(ckpt["optimizer"])
-            torch.set_rng_state(ckpt["torch_rng"])
-            state.step, state.epoch = int(ckpt["step"]), int(ckpt["epoch"])
-        except (RuntimeError, ValueError, TypeError, KeyError) as e:
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise CheckpointError(f"pretraining checkpoint cannot be resumed ({first})") from None
+        restore_state(state, ckpt, "pretraining checkpoint")
     return state
 
 

@@ -208,15 +208,22 @@ def start_state(cfg: ModelConfig, variant: str, tc: TrainConfig, device: torch.d
     model = model.to(device)
     state = TrainState(model, torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay))
     if ckpt is not None:
-        try:
-            model.load_state_dict(ckpt["model"])
-            state.opt.load_state_dict(ckpt["optimizer"])
-            torch.set_rng_state(ckpt["torch_rng"])
-        except (RuntimeError, ValueError, TypeError, KeyError) as e:
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise CheckpointError(f"checkpoint {path} cannot be resumed ({first})") from None
-        state.step, state.epoch, state.best_nds = int(ckpt["step"]), int(ckpt["epoch"]), float(ckpt["best_nds"])
+        restore_state(state, ckpt, f"checkpoint {path}")
+        state.best_nds = float(ckpt["best_nds"])
     return state
+
+
+def restore_state(state: TrainState, ckpt: dict, what: str) -> None:
+    """Put the weights, the optimizer, the torch RNG, the step and the epoch of ``ckpt`` into
+    ``state``; CheckpointError naming ``what`` when they do not fit."""
+    try:
+        state.model.load_state_dict(ckpt["model"])
+        state.opt.load_state_dict(ckpt["optimizer"])
+        torch.set_rng_state(ckpt["torch_rng"])
+        state.step, state.epoch = int(ckpt["step"]), int(ckpt["epoch"])
+    except (RuntimeError, ValueError, TypeError, KeyError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{what} cannot be resumed ({first})") from None
 
 
 def epoch_loader(loop: Loop, state: TrainState) -> torch.utils.data.DataLoader:

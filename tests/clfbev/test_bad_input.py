@@ -23,19 +23,6 @@ from clfbev.run.checkpoint import save_checkpoint
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-MICRO_YAML = """\
-preset: tiny
-image_size: [64, 176]
-cam_width: 8
-fpn_ch: 32
-context_ch: 16
-vfe_ch: 16
-fusion_dim: 32
-attn_heads: 2
-bev_channels: [16, 32]
-bev_blocks: 1
-bev_up_ch: 16
-"""
 MICRO = dataclasses.replace(tiny(), image_size=(64, 176), cam_width=8, fpn_ch=32, context_ch=16, vfe_ch=16,
                             fusion_dim=32, attn_heads=2, bev_channels=(16, 32), bev_blocks=1, bev_up_ch=16)
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -104,10 +91,9 @@ def test_a_checkpoint_with_non_finite_weights(tiny_dataset, tmp_path, ckpt_state
     assert_bad_input(_eval(tiny_dataset, path, tmp_path / "e"), "nan.pt", name)
 
 
-def test_resuming_from_a_checkpoint_without_the_optimizer(tiny_dataset, tmp_path, ckpt_state):
+def test_resuming_from_a_checkpoint_without_the_optimizer(tiny_dataset, micro, tmp_path, ckpt_state):
     """A checkpoint written for evaluation cannot be resumed: it lacks what training reads."""
-    config = tmp_path / "micro.yaml"
-    config.write_text(MICRO_YAML)
+    config = micro
     run = tmp_path / "run"
     save_checkpoint(run / "last.pt", ckpt_state)
     proc = clfbev("train", "--data", tiny_dataset, "--out", run, "--config", config, "--variant", "lidar",
@@ -208,15 +194,15 @@ def _train(data, out, config, *extra):
                   "--batch-size", "1", "--val-split", "", "--threads", "1", "--quiet", *extra)
 
 
-def test_a_config_file_with_a_yaml_syntax_error(tiny_dataset, tmp_path):
+def test_a_config_file_with_a_yaml_syntax_error(tiny_dataset, micro, tmp_path):
     config = tmp_path / "broken.yaml"
-    config.write_text(MICRO_YAML + "bev_channels: [16, 32\n")
+    config.write_text(micro.read_text() + "bev_channels: [16, 32\n")
     assert_bad_input(_train(tiny_dataset, tmp_path / "run", config), "broken.yaml")
 
 
-def test_a_config_file_with_a_non_finite_value(tiny_dataset, tmp_path):
+def test_a_config_file_with_a_non_finite_value(tiny_dataset, micro, tmp_path):
     config = tmp_path / "nan.yaml"
-    config.write_text(MICRO_YAML + "depth_bins: [1.0, .nan, 1.0]\n")
+    config.write_text(micro.read_text() + "depth_bins: [1.0, .nan, 1.0]\n")
     assert_bad_input(_train(tiny_dataset, tmp_path / "run", config), "nan.yaml", "depth_bins")
 
 
@@ -225,12 +211,11 @@ def test_a_checkpoint_whose_config_has_a_value_of_the_wrong_type(tiny_dataset, t
     assert_bad_input(_eval(tiny_dataset, path, tmp_path / "e"), "odd.pt", "fusion_dim")
 
 
-def test_annotations_lacking_translation(tiny_dataset, tmp_path):
+def test_annotations_lacking_translation(tiny_dataset, micro, tmp_path):
     data = tmp_path / "data"
     shutil.copytree(tiny_dataset, data)
     table = data / "v1.0-sim" / "sample_annotation.json"
     records = json.loads(table.read_text())
     table.write_text(json.dumps([{k: v for k, v in r.items() if k != "translation"} for r in records]))
-    config = tmp_path / "micro.yaml"
-    config.write_text(MICRO_YAML)
+    config = micro
     assert_bad_input(_train(data, tmp_path / "run", config), "sample_annotation.json", "translation")

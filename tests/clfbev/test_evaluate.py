@@ -44,21 +44,9 @@ def test_attribute_from_speed():
 
 def test_ground_truth_round_trip_is_perfect(tiny_dataset, tmp_path):
     """GT -> lidar frame (loader) -> global (detections_to_results) -> DetectionEval: mAP 1."""
-    probe = NuScenesDetection(tiny_dataset, "v1.0-sim", "sim-val", DataConfig(min_points=1))
-    classes = _classes_with_points(probe.nusc, probe)
-    # No range crop: a GT box the loader drops would be a missed detection here.
-    ds = NuScenesDetection(tiny_dataset, "v1.0-sim", "sim-val",
-                           DataConfig(class_names=classes, min_points=1, n_sweeps=1,
-                                      point_range=(-1e4, -1e4, -1e3, 1e4, 1e4, 1e3)))
-    samples = [ds[i] for i in range(len(ds))]
-    dets = [Detections(s.gt_boxes, torch.ones(len(s.gt_boxes)), s.gt_labels) for s in samples]
-    results = detections_to_results(dets, [s.sample_token for s in samples],
-                                    [s.T_global_from_lidar for s in samples], classes)
-    assert set(results) == set(ds.sample_tokens) and sum(map(len, results.values())) > 20
-    path = write_results(tmp_path / "results.json", results)
-    assert set(json.loads(path.read_text())) == {"meta", "results"}
-
-    summary = evaluate(ds.nusc, path, "sim-val", tmp_path / "eval", classes)
+    tokens, results, summary = _gt_as_predictions(tiny_dataset, tmp_path)
+    assert set(results) == set(tokens) and sum(map(len, results.values())) > 20
+    assert set(json.loads((tmp_path / "results.json").read_text())) == {"meta", "results"}
     assert {"car", "pedestrian"} <= set(summary["mean_dist_aps"])
     assert summary["mean_ap"] == pytest.approx(1.0)
     for name, errs in summary["label_tp_errors"].items():
@@ -77,9 +65,10 @@ def test_ground_truth_round_trip_is_perfect(tiny_dataset, tmp_path):
     assert (tmp_path / "eval" / "metrics_details.json").exists()
 
 
-def _gt_as_predictions(dataroot, tmp_path) -> dict:
-    """The sim-val GT of ``dataroot``, read through the loader without a range crop, scored by
-    the devkit as predictions; the devkit's summary."""
+def _gt_as_predictions(dataroot, tmp_path) -> tuple[list[str], dict, dict]:
+    """The sim-val GT of ``dataroot``, read through the loader without a range crop (a GT box
+    the loader dropped would be a missed detection), written to ``tmp_path / "results.json"`` and
+    scored by the devkit as predictions: (the split's sample tokens, the results, the summary)."""
     probe = NuScenesDetection(dataroot, "v1.0-sim", "sim-val", DataConfig(min_points=1))
     classes = _classes_with_points(probe.nusc, probe)
     ds = NuScenesDetection(dataroot, "v1.0-sim", "sim-val",
@@ -90,7 +79,7 @@ def _gt_as_predictions(dataroot, tmp_path) -> dict:
     results = detections_to_results(dets, [s.sample_token for s in samples],
                                     [s.T_global_from_lidar for s in samples], classes)
     path = write_results(tmp_path / "results.json", results)
-    return evaluate(ds.nusc, path, "sim-val", tmp_path / "eval", classes)
+    return ds.sample_tokens, results, evaluate(ds.nusc, path, "sim-val", tmp_path / "eval", classes)
 
 
 def test_class_beyond_its_range_is_not_evaluated(tiny_dataset, tmp_path):
@@ -120,7 +109,7 @@ def test_class_beyond_its_range_is_not_evaluated(tiny_dataset, tmp_path):
     cfg = detection_config_for(moved, "sim-val", classes)
     assert far not in cfg.class_names and far in cfg.class_range
     assert set(cfg.class_names) == set(classes) - {far}
-    summary = _gt_as_predictions(root, tmp_path / "moved")
+    _, _, summary = _gt_as_predictions(root, tmp_path / "moved")
     assert summary["mean_ap"] == pytest.approx(1.0)
     # Every TP error is 0 but the attribute's, which is derived from the speed (a stopped car
     # reads as parked): NDS is 1 less that term alone.

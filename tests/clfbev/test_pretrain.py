@@ -29,19 +29,6 @@ from clfbev.supervision.dense import centre_targets, cell_depth_and_class
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-MICRO = """\
-preset: tiny
-image_size: [64, 176]
-cam_width: 8
-fpn_ch: 32
-context_ch: 16
-vfe_ch: 16
-fusion_dim: 32
-attn_heads: 2
-bev_channels: [16, 32]
-bev_blocks: 1
-bev_up_ch: 16
-"""
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "egl")}
 
 
@@ -53,13 +40,6 @@ def dense_data(tmp_path_factory) -> Path:
                            "--seed", "11", "--workers", "1", "--quiet"], capture_output=True, text=True, env=ENV)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out
-
-
-@pytest.fixture(scope="module")
-def micro(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("cfg") / "micro.yaml"
-    path.write_text(MICRO)
-    return path
 
 
 def clfbev(*args, check=True) -> subprocess.CompletedProcess:
@@ -211,7 +191,7 @@ def test_bad_input_exits_2(dense_data, encoder_ckpt, micro, tmp_path):
     junk.write_bytes(b"not a checkpoint at all")
     _assert_bad_input(clfbev(*train, "--out", tmp_path / "r1", "--image-init", junk, check=False), "junk.pt")
     wider = tmp_path / "wider.yaml"
-    wider.write_text(MICRO.replace("cam_width: 8", "cam_width: 16"))
+    wider.write_text(micro.read_text().replace("cam_width: 8", "cam_width: 16"))
     _assert_bad_input(clfbev(*train[:4], wider, *train[5:], "--out", tmp_path / "r2", "--image-init", encoder_ckpt,
                              check=False), "encoder.pt", "cam_width")
     _assert_bad_input(clfbev(*train[:-2], "--variant", "lidar", "--out", tmp_path / "r3", "--image-init",

@@ -12,7 +12,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 import torch
@@ -25,27 +24,7 @@ from clfbev.run.train_config import TrainConfig
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-MICRO = """\
-preset: tiny
-image_size: [64, 176]
-cam_width: 8
-fpn_ch: 32
-context_ch: 16
-vfe_ch: 16
-fusion_dim: 32
-attn_heads: 2
-bev_channels: [16, 32]
-bev_blocks: 1
-bev_up_ch: 16
-"""
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
-
-
-@pytest.fixture(scope="module")
-def micro(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("cfg") / "micro.yaml"
-    path.write_text(MICRO)
-    return path
 
 
 def clfbev(*args, check=True, **kw) -> subprocess.CompletedProcess:
