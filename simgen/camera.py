@@ -206,14 +206,18 @@ class Renderer:
         caster_tiles = [casters[f] for f in static_tiles(casters, STATIC_TILE)]
         self.caster_nodes = [scene.add(depth_mesh(pr, t)) for t in caster_tiles]
         self.caster_centre, self.caster_radius = _bounding_spheres(caster_tiles)
-        self.actor_nodes, self.radius = {}, {}
-        for i, (a, yaw) in enumerate(zip(world.actors, world.yaw)):
+        self.actor_nodes, self.radius, self.turning = {}, {}, {}
+        for i, a in enumerate(world.actors):
             # The ego is not rendered (no pixels of the own car); static actors are merged above.
             if a.annotate and moving[i]:
-                c, s = np.cos(yaw), np.sin(yaw)
-                sun_box = np.array([c * sun[0] + s * sun[1], -s * sun[0] + c * sun[1], sun[2]])  # yaw is constant
-                self.actor_nodes[a.id] = add(np.asarray(a.mesh.triangles), np.asarray(a.mesh.face_normals),
-                                             np.asarray(a.mesh.visual.face_colors)[:, :3], sun_box, a.id)
+                # Shaded with the sun in the box frame at the start; an actor whose heading
+                # changes (it turns) is shaded again for each render (_shade_turning).
+                c, s = np.cos(world.yaw[i, 0]), np.sin(world.yaw[i, 0])
+                sun_box = np.array([c * sun[0] + s * sun[1], -s * sun[0] + c * sun[1], sun[2]])
+                normals, albedo = np.asarray(a.mesh.face_normals), np.asarray(a.mesh.visual.face_colors)[:, :3]
+                if np.ptp(world.yaw[i]) > 0:
+                    self.turning[a.id] = (n_faces, normals, albedo)
+                self.actor_nodes[a.id] = add(np.asarray(a.mesh.triangles), normals, albedo, sun_box, a.id)
                 self.radius[a.id] = float(np.linalg.norm(a.size)) / 2
         if n_faces >= 2 ** 24:
             raise ValueError(f"{n_faces} faces do not fit the 24-bit face index of the id pass")
@@ -223,6 +227,15 @@ class Renderer:
         self.cam_node = scene.add(pr.IntrinsicsCamera(1, 1, 0, 0, znear=CAMERA_ZNEAR, zfar=self.cfg.zfar))
         self.scene = scene
         self._world_key = key
+
+    def _shade_turning(self, actor_poses: dict[int, np.ndarray]) -> None:
+        """Re-shade the faces of the actors whose heading changes over time with the sun in their
+        box frame at this render's poses (actor id -> (4, 4) T_global_from_box)."""
+        for aid, (first, normals, albedo) in self.turning.items():
+            sun_box = actor_poses[aid][:3, :3].T @ self.sun
+            faces = slice(first, first + len(normals))
+            self.face_rgbx[faces] = _rgbx(self._shaded(normals, albedo, sun_box))
+            self.face_tan[faces] = sunlight.slope_tan(normals @ sun_box)
 
     def _shaded(self, normals: np.ndarray, albedo: np.ndarray, sun: np.ndarray) -> np.ndarray:
         """(F, 3) uint8 face colours: (F, 3) albedo lit by ambient + sun * max(0, n . sun)."""
@@ -252,6 +265,7 @@ class Renderer:
         self.cam_node.camera = pr.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], znear=CAMERA_ZNEAR,
                                                    zfar=self.cfg.zfar)
         self.scene.set_pose(self.cam_node, T_global_from_cam @ T_CV_FROM_GL)
+        self._shade_turning(actor_poses)
         ids = list(self.actor_nodes)
         centres = np.array([actor_poses[i][:3, 3] for i in ids]).reshape(-1, 3)
         visible = self._in_view(cam, T_global_from_cam, centres, np.array([self.radius[i] for i in ids]))

@@ -62,6 +62,8 @@ class ActorsConfig:
     # Trailers: the share of moving trucks that tow one, and unhitched ones parked at the curb.
     hitched_trailer_fraction: float = field(default=0.0, metadata=allowed(0.0, 1.0))
     parked_trailers_per_km: float = field(default=0.0, metadata=allowed(0.0, 100.0))
+    # The share of moving vehicles (trains included) that turn left or right at an intersection ahead.
+    turning_fraction: float = field(default=0.0, metadata=allowed(0.0, 1.0))
     # Bus stops in the parking strips, each with a bus standing at it.
     bus_stops_per_km: float = field(default=0.0, metadata=allowed(0.0, 100.0))
 

@@ -1,9 +1,10 @@
 """Heavy vehicles at the curb and on the road: buses standing at their stops, unhitched trailers
 parked in the parking strips, and trailers hitched to moving trucks.
 
-A hitched trailer stands on its tractor's path, ``HITCH_GAP`` behind the tractor's box, with the
-tractor's heading; :mod:`simgen.motion` keeps it there (``Plan.tractor``), so tractor and trailer
-never touch and move as one.
+A hitched trailer starts on its tractor's path, its box a coupling gap behind the tractor's, with
+the tractor's heading; :mod:`simgen.motion` drags it along (``Plan.tractor``): on a straight path
+it stays on the line that distance back, through a turn it follows as a kinematic trailer
+(:mod:`simgen.paths`). Tractor and trailer never touch and move as one.
 """
 from __future__ import annotations
 
@@ -14,7 +15,14 @@ from .layout import Grid
 from .placement import ActorMaker, Placer, Plan, lane
 from .world import Actor
 
-HITCH_GAP = 0.6        # m between a tractor's box and its trailer's: the coupling's reach
+# The drawbar: m between a tractor's box and its trailer's. The hitch is the middle of the
+# tractor's rear face, so the tractor's rear corners swing about it on a circle of the tractor's
+# half width: a drawbar longer than the widest truck's half width (1.3 x 2.46 m / 2 = 1.6 m, the
+# size draw's upper clip) keeps them off the trailer's front at any articulation, and the
+# trailer's front corners, on a circle of radius hypot(2.0, half its width) about the hitch,
+# reach the tractor's side only past 100 degrees (101 at the widest sizes drawn). A 0.6 m
+# coupling would touch at about 30 degrees; the turns bring 40 to 65.
+HITCH_GAP = 2.0
 CURB_CLEARANCE = 0.2   # m between the curb and a vehicle standing at it
 
 
@@ -57,7 +65,7 @@ def hitch(trailer: Actor, tractor: Plan) -> Plan:
     behind = tractor.actor.size[0] / 2 + HITCH_GAP + trailer.size[0] / 2
     trailer.towed_by = tractor.actor.id
     return Plan(trailer, tractor.origin, tractor.heading, tractor.s0 - behind, tractor.length, 0.0,
-                priority=tractor.priority, tractor=tractor)
+                priority=tractor.priority, tractor=tractor, turn=tractor.turn)
 
 
 def place_train(placer: Placer, tractor: Plan, trailer: Plan | None, margin: float) -> bool:

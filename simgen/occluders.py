@@ -57,7 +57,7 @@ def add_occluders(world: World, grid: Grid, level: str, rng: np.random.Generator
     if level == "none":
         return world
     ego = world.xy[0]                                          # (K, 2)
-    yaw = float(world.yaw[0])
+    yaw = float(world.yaw[0, 0])                              # the ego's path is straight
     heading = np.array([np.cos(yaw), np.sin(yaw)])
     horizontal = abs(heading[0]) > abs(heading[1])             # the route runs along x
     centres = grid.ys if horizontal else grid.xs
@@ -111,7 +111,7 @@ def _collides(box: np.ndarray, world: World, placed: list[np.ndarray]) -> bool:
         b = np.zeros((len(xy), 7))
         b[:, :2] = xy
         b[:, 3:5] = np.repeat(sizes[idx, :2], K, axis=0)
-        b[:, 6] = np.repeat(world.yaw[idx], K)
+        b[:, 6] = world.yaw[idx].reshape(-1)
         if geometry.bev_overlap_pairwise(np.repeat(box[None], len(b), 0), b, margin=MARGIN).any():
             return True
     others = np.concatenate([world.static_boxes, np.array(placed).reshape(-1, 7)])

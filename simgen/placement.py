@@ -1,7 +1,8 @@
 """What every placing section shares: the plan of an actor before simulation, the rejection
 sampler that keeps footprints apart, the actor factory and the lanes and sidewalk lines to place on.
 
-Every actor gets a straight path (origin, heading) and a desired speed; static actors get speed 0.
+Every actor gets a path (origin, heading, and for some moving vehicles a turn at an intersection)
+and a desired speed; static actors get speed 0.
 """
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import numpy as np
 from . import assets
 from . import geometry
 from .layout import MAP_PAD, Grid
+from .paths import Turn
 from .world import Actor
 
 # Mean (l, w, h) per class from the nuScenes anchor configs; the spread is relative.
@@ -35,17 +37,21 @@ SITE_YELLOW = np.array((235, 175, 20), float)
 N_SURFACE = 256  # surface samples per actor for the visibility measure
 @dataclass
 class Plan:
-    """An actor before simulation: its path, motion parameters and initial footprint."""
+    """An actor before simulation: its path, motion parameters and initial footprint.
+
+    ``xy`` and ``box`` hold on the path's straight start, where every actor begins (a turn, if
+    any, lies ahead of ``s0``)."""
     actor: Actor
     origin: np.ndarray          # (2,) path start, global
-    heading: float              # path direction (rad); also the actor yaw
+    heading: float              # path direction at the start (rad); also the actor's initial yaw
     s0: float                   # initial arc length along the path
-    length: float               # path length
+    length: float               # path length (turn included)
     v_des: float                # desired speed (0 for static actors)
     z_ground: float = 0.0       # ground height under a static actor
     stop: tuple = ()            # (t_start, t_end) of a planned stop, or ()
     priority: int = 0           # lower goes first when two actors wait for each other
     tractor: "Plan | None" = None  # a hitched trailer's tractor: it keeps its distance behind it
+    turn: Turn | None = None    # where the path turns onto a crossing road, or None (straight)
 
     def xy(self, s: float) -> np.ndarray:
         return self.origin + s * np.array([np.cos(self.heading), np.sin(self.heading)])

@@ -37,14 +37,14 @@ def sample_world(cfg: SceneConfig, rng: np.random.Generator, n_samples: int) -> 
     grid = Grid(cfg.layout)
     static_mesh, clutter = build_static(grid, rng)
     plans = place_actors(cfg, grid, clutter, duration, rng)
-    xy, speed = simulate(plans, clutter, times)
+    xy, yaw, speed = simulate(plans, clutter, times)
     size = np.array([p.actor.size for p in plans])
     z = grid.ground_z(xy) + size[:, 2:3] / 2
     z[0] = 0.0  # the ego's track is its ego_pose, whose z is 0 by nuScenes convention
     return World(
         extent=grid.extent, static_mesh=static_mesh, static_boxes=clutter,
         actors=[p.actor for p in plans], times=times, xy=xy, z=z,
-        yaw=np.array([p.heading for p in plans]), speed=speed,
+        yaw=yaw, speed=speed,
         drivable=drivable_mask(grid),
         description=cfg.description,
     )

@@ -1,22 +1,27 @@
 """Actor placement: the ego, moving and parked vehicles, cycles, pedestrians, cones and barriers.
 
-Every actor gets a straight path (origin, heading) and a desired speed; static actors get speed 0.
-Placement is rejection-sampled so that no two footprints overlap at the start; the motion model
+Every actor gets a path (origin, heading; some moving vehicles turn at an intersection ahead,
+:mod:`simgen.turns`) and a desired speed; static actors get speed 0. Placement is
+rejection-sampled so that no two footprints overlap at the start; the motion model
 (:mod:`simgen.motion`) keeps it that way. The shared machinery is in :mod:`simgen.placement`,
 road works in :mod:`simgen.roadworks`, bus stops and trailers in :mod:`simgen.curbside`.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from . import assets
 from .config import ActorsConfig, SceneConfig
-from .curbside import hitch, place_bus_stops, place_parked_trailers, place_train
+from .curbside import HITCH_GAP, hitch, place_bus_stops, place_parked_trailers, place_train
 from .layout import CURB_HEIGHT, MAP_PAD, Grid
 # SIZE_MEAN and make_actor are read from here by callers that build single actors.
 from .placement import (EGO_SIZE, SIZE_MEAN, SPEED, ActorMaker, Placer, Plan, make_actor, lane,  # noqa: F401
                         sidewalk_line)
+from .paths import Routes
 from .roadworks import place_construction_zones
+from .turns import path_clear, turn_ahead
 from .world import Actor
 
 # Standing pedestrians: the shares of those facing along the sidewalk (either way), towards the
@@ -107,7 +112,8 @@ def _fill_slot(a: ActorsConfig, placer: Placer, new: ActorMaker, rng: np.random.
 
 def _place_moving_vehicles(a: ActorsConfig, grid: Grid, placer: Placer, new: ActorMaker, duration: float,
                            rng: np.random.Generator) -> None:
-    """Moving vehicles in lanes, with an occasional planned stop; some trucks tow a trailer."""
+    """Moving vehicles in lanes, with an occasional planned stop; some trucks tow a trailer, and
+    ``turning_fraction`` of them turn left or right (evenly) at the next intersection."""
     mix = list(a.vehicle_mix)
     weights = np.array([a.vehicle_mix[k] for k in mix])
     for _ in range(int(round(a.vehicles_per_km * grid.road_km))):
@@ -115,16 +121,38 @@ def _place_moving_vehicles(a: ActorsConfig, grid: Grid, placer: Placer, new: Act
         actor = new(cls, rider=True)
         towed = cls == "truck" and a.hitched_trailer_fraction > 0 and rng.random() < a.hitched_trailer_fraction
         trailer = new("trailer") if towed else None
+        turning = a.turning_fraction > 0 and rng.random() < a.turning_fraction
+        left = turning and rng.random() < 0.5
         for _try in range(20):
-            origin, heading, length, _ = lane(grid, rng)
+            origin, heading, length, lateral = lane(grid, rng)
             stop = ()
             if rng.random() < a.stop_probability:
                 t0 = rng.uniform(0, duration)
                 stop = (t0, t0 + rng.uniform(1.5, 4.0))
             plan = Plan(actor, origin, heading, rng.uniform(5, length - 5), length,
                         rng.uniform(*SPEED[cls]), stop=stop, priority=2000 + actor.id)
+            if turning:
+                plan = _with_turn(grid, plan, lateral, left, trailer)
             if place_train(placer, plan, hitch(trailer, plan) if towed else None, 1.0):
                 break
+
+
+def _with_turn(grid: Grid, plan: Plan, lateral: float, left: bool, trailer: Actor | None) -> Plan:
+    """``plan`` turning at the next intersection ahead (see :mod:`simgen.turns`), or ``plan`` as
+    it is when no intersection lies ahead or the turn would take it, or its ``trailer``, off the
+    road (a train's articulation also has to leave the two boxes apart)."""
+    found = turn_ahead(grid, plan.origin, plan.heading, plan.s0, lateral, left)
+    if found is None:
+        return plan
+    turn, length = found
+    routes = Routes.of(plan.origin[None], [plan.heading], [turn])
+    size = np.array(plan.actor.size)
+    if trailer is None:
+        clear = path_clear(grid, routes, plan.s0, turn, size)
+    else:
+        behind = size[0] / 2 + HITCH_GAP + trailer.size[0] / 2
+        clear = path_clear(grid, routes, plan.s0, turn, size, np.array(trailer.size), behind)
+    return dataclasses.replace(plan, turn=turn, length=length) if clear else plan
 
 
 def _place_moving_bicycles(cfg: SceneConfig, grid: Grid, placer: Placer, new: ActorMaker,

@@ -61,8 +61,9 @@ class World:
     """A scene's world for its whole duration.
 
     Tracks are sampled at ``times`` (seconds from the scene start, uniform step ``dt``):
-    ``xy`` (n, K, 2), ``z`` (n,) box-centre height, ``yaw`` (n,) (paths are straight),
-    ``speed`` (n, K). Actor 0 is the ego; its ``z`` is 0 (the ego_pose height).
+    ``xy`` (n, K, 2), ``z`` (n, K) box-centre height, ``yaw`` (n, K) heading (rad, continuous
+    over time: never wrapped, so a turning actor's track has no 2 pi jumps), ``speed`` (n, K).
+    Actor 0 is the ego; its ``z`` is 0 (the ego_pose height) and its path is straight.
     """
     extent: tuple[float, float]
     static_mesh: trimesh.Trimesh
@@ -71,7 +72,7 @@ class World:
     times: np.ndarray                   # (K,)
     xy: np.ndarray                      # (n, K, 2)
     z: np.ndarray                       # (n, K)
-    yaw: np.ndarray                     # (n,)
+    yaw: np.ndarray                     # (n, K)
     speed: np.ndarray                   # (n, K)
     drivable: np.ndarray                # (H, W) uint8 mask at 0.1 m/px, 255 = drivable
     description: str = ""
@@ -82,10 +83,11 @@ class World:
         return float(self.times[1] - self.times[0])
 
     def boxes_at(self, t: float) -> np.ndarray:
-        """(n, 7) boxes (x, y, z, l, w, h, yaw) of all actors at time ``t`` (linear interpolation)."""
+        """(n, 7) boxes (x, y, z, l, w, h, yaw) of all actors at time ``t`` (linear interpolation;
+        the heading along the shorter way between its samples)."""
         xy = _interp(self.times, self.xy, t)
         z = _interp(self.times, self.z[..., None], t)
-        return np.concatenate([xy, z, self.sizes, self.yaw[:, None]], axis=1)
+        return np.concatenate([xy, z, self.sizes, _interp_angle(self.times, self.yaw, t)[:, None]], axis=1)
 
     @functools.cached_property
     def sizes(self) -> np.ndarray:
@@ -99,10 +101,11 @@ class World:
     def ego_xy_yaw(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The ego frame's origin (rear axle) x, y and yaw at times ``t`` ((m,) arrays)."""
         t_arr = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        c, s = np.cos(self.yaw[0]), np.sin(self.yaw[0])
+        yaw = np.interp(t_arr, self.times, self.yaw[0])
+        c, s = np.cos(yaw), np.sin(yaw)
         x = np.interp(t_arr, self.times, self.xy[0, :, 0]) - EGO_CENTRE_AHEAD_OF_ORIGIN * c
         y = np.interp(t_arr, self.times, self.xy[0, :, 1]) - EGO_CENTRE_AHEAD_OF_ORIGIN * s
-        return x, y, np.full_like(x, self.yaw[0])
+        return x, y, yaw
 
     def ego_pose(self, t) -> np.ndarray:
         """T_global_from_ego at time(s) ``t``: (4, 4) for a scalar, (m, 4, 4) for an array."""
@@ -112,7 +115,20 @@ class World:
 
 def _interp(times: np.ndarray, values: np.ndarray, t: float) -> np.ndarray:
     """Linear interpolation of (n, K, c) samples at scalar time t -> (n, c)."""
+    k, a = _bracket(times, t)
+    return values[:, k] * (1.0 - a) + values[:, k + 1] * a
+
+
+def _interp_angle(times: np.ndarray, angles: np.ndarray, t: float) -> np.ndarray:
+    """Linear interpolation of (n, K) angles at scalar time t -> (n,), turning the shorter way
+    between the two samples (a constant heading comes back exactly)."""
+    k, a = _bracket(times, t)
+    step = (angles[:, k + 1] - angles[:, k] + np.pi) % (2 * np.pi) - np.pi
+    return angles[:, k] + a * step
+
+
+def _bracket(times: np.ndarray, t: float) -> tuple[int, float]:
+    """The sample k with times[k] <= t < times[k + 1] (clamped) and the fraction of the way."""
     k = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))
     a = (t - times[k]) / (times[k + 1] - times[k])
-    a = float(np.clip(a, 0.0, 1.0))
-    return values[:, k] * (1.0 - a) + values[:, k + 1] * a
+    return k, float(np.clip(a, 0.0, 1.0))

@@ -62,7 +62,7 @@ def hand_world(static_mesh, ego_speed=0.0, actors=(), actor_xy=()) -> World:
     speed = np.zeros((len(acts), K))
     speed[0] = ego_speed
     return World(extent=(100.0, 100.0), static_mesh=static_mesh, static_boxes=np.zeros((0, 7)),
-                 actors=acts, times=times, xy=np.array(xy), z=z, yaw=np.zeros(len(acts)),
+                 actors=acts, times=times, xy=np.array(xy), z=z, yaw=np.zeros((len(acts), K)),
                  speed=speed, drivable=np.zeros((8, 8), np.uint8))
 
 
