@@ -59,7 +59,9 @@ class ModelConfig:
     Loss: ``loss``; ``velocity_balance`` (the velocity residuals leave the shared box loss for
     their own, in which the moving and the still positives weigh the same in total,
     :func:`clfbev.supervision.losses.velocity_loss`), ``velocity_beta`` (its Smooth-L1 beta in
-    m/s, >= 0) and ``velocity_weight`` (its weight beside ``loss.reg``, >= 0).
+    m/s, >= 0) and ``velocity_weight`` (its weight beside ``loss.reg``, >= 0);
+    ``min_positives`` (1-4: each GT also trains the anchors of its class nearest its centre up
+    to this many, :func:`clfbev.supervision.assign.assign_targets`; 1: SECOND's matching).
     """
 
     class_names: tuple[str, ...] = DETECTION_CLASSES
@@ -110,6 +112,7 @@ class ModelConfig:
     velocity_balance: bool = False
     velocity_beta: float = 1.0
     velocity_weight: float = 0.2
+    min_positives: int = 1
 
     def __post_init__(self) -> None:
         # Cheap checks with a clear message; the modules check the rest when they are built.
@@ -131,6 +134,8 @@ class ModelConfig:
         for name, value in non_negative.items():
             if not value >= 0:
                 raise ConfigError(f"{name} must be >= 0, got {value}")
+        if not 1 <= self.min_positives <= 4:
+            raise ConfigError(f"min_positives must be in [1, 4], got {self.min_positives}")
         if self.attn_mode not in ATTENTION_MODES:
             raise ConfigError(f"attn_mode must be one of {ATTENTION_MODES}, got {self.attn_mode!r}")
         if self.fusion_dim % self.attn_heads or self.fusion_dim % 4:

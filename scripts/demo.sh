@@ -36,7 +36,9 @@ t2=$(date +%s)
 
 .venv/bin/clfbev eval --data "$DATA" --ckpt "$RUN/last.pt" --split sim-val --out "$OUT/eval"
 t3=$(date +%s)
-.venv/bin/clfbev show --data "$DATA" --results "$OUT/eval/results.json" --sample 4 --out "$OUT/overlay.png" \
+# The fifth sim-val sample, or the last of the first val scene when scenes are shorter.
+show_sample=$(( SAMPLES > 4 ? 4 : SAMPLES - 1 ))
+.venv/bin/clfbev show --data "$DATA" --results "$OUT/eval/results.json" --sample "$show_sample" --out "$OUT/overlay.png" \
   --attention --ckpt "$RUN/last.pt"
 t4=$(date +%s)
 

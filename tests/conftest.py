@@ -1,6 +1,7 @@
 """Shared fixtures: one small dataset made through the CLI, reused by the dataset tests."""
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
@@ -11,6 +12,14 @@ import pytest
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 TINY_ARGS = ["--preset", "tiny", "--scenes", "2", "--samples-per-scene", "3", "--seed", "7", "--quiet"]
+
+
+def script_module(name: str):
+    """``scripts/NAME.py`` imported as a module (the scripts are not a package)."""
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def run_simgen(*args, check=True, **kw) -> subprocess.CompletedProcess:

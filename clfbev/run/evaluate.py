@@ -91,13 +91,13 @@ def write_results(path, results: dict, meta: dict | None = None) -> Path:
     return io.write_json(path, {"meta": {**DEFAULT_META, **(meta or {})}, "results": results})
 
 
-def _split_sample_tokens(nusc, split: str) -> list[str]:
+def split_sample_tokens(nusc, split: str) -> list[str]:
     """Sample tokens of the scenes of ``split`` (official or from splits.json)."""
     names = set(split_scene_names(Path(nusc.dataroot), nusc.version, split))
     return [s["token"] for s in nusc.sample if nusc.get("scene", s["scene_token"])["name"] in names]
 
 
-def _ego_distance(nusc, ann: dict) -> float:
+def ego_distance(nusc, ann: dict) -> float:
     """xy distance (m) from the ego pose of the annotation's lidar key frame to its centre: the
     devkit's ``add_center_dist``, which its range filter compares with ``class_range``."""
     sample = nusc.get("sample", ann["sample_token"])
@@ -120,14 +120,14 @@ def detection_config_for(nusc, split: str, class_names):
 
     cfg = config_factory("detection_cvpr_2019")
     with_gt, evaluable = set(), set()
-    for token in _split_sample_tokens(nusc, split):
+    for token in split_sample_tokens(nusc, split):
         for ann_token in nusc.get("sample", token)["anns"]:
             ann = nusc.get("sample_annotation", ann_token)
             name = category_to_detection_name(ann["category_name"])
             if name is None:
                 continue
             with_gt.add(name)
-            if ann["num_lidar_pts"] > 0 and _ego_distance(nusc, ann) < cfg.class_range[name]:
+            if ann["num_lidar_pts"] > 0 and ego_distance(nusc, ann) < cfg.class_range[name]:
                 evaluable.add(name)
     cfg.class_range = {k: v for k, v in cfg.class_range.items() if k in with_gt}
     cfg.class_names = [k for k in cfg.class_range if k in evaluable and k in set(class_names)]
@@ -153,7 +153,7 @@ def evaluate(nusc, results_path, split: str, out_dir, class_names, plots: bool =
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg = detection_config_for(nusc, split, class_names)
     sub = json.loads(Path(results_path).read_text())
-    expected = set(_split_sample_tokens(nusc, split))
+    expected = set(split_sample_tokens(nusc, split))
     got = set(sub["results"])
     if got != expected:
         raise DataError(f"{results_path}: results cover {len(got)} samples, split '{split}' has {len(expected)} "

@@ -12,22 +12,31 @@ A plain dict, written atomically (:func:`clfbev.io.save_torch`) and read with
 - ``command``: the command line that made it; ``data``: the identity of the pretraining set
   (:func:`clfbev.pretrain_data.data_identity`); ``step``; ``code_version``.
 
+:func:`resolve_image_init` turns ``--image-init`` into a file: a path as given, or for
+``shipped`` the checkpoint in ``clfbev/weights/`` whose record (the ``.json`` beside it) names
+the config's camera fields.
+
 Loading refuses, with one :class:`clfbev.errors.CheckpointError` naming the file, a file that is
 not such a checkpoint, one made for other camera fields, and one whose tensors do not have
 exactly the encoder's names and shapes.
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import torch
 from torch import nn
 
 from clfbev import io
+from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import ModelConfig
 from clfbev.errors import CheckpointError
+from clfbev.run.torchvision_init import TORCHVISION, load_torchvision_backbone
+from clfbev.run.train_config import SHIPPED
 
 ENCODER_FORMAT = "clfbev-encoder-v1"
+WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
 CAMERA_FIELDS = ("image_size", "cam_depth", "cam_width", "fpn_ch", "context_ch", "depth_bins", "feature_stride")
 
 
@@ -35,6 +44,38 @@ def camera_fields(cfg: ModelConfig) -> dict:
     """The fields of ``cfg`` the camera encoder's weights depend on (YAML/JSON-safe)."""
     plain = cfg.to_dict()
     return {k: plain[k] for k in CAMERA_FIELDS}
+
+
+def shipped_encoder(cfg: ModelConfig) -> Path | None:
+    """The encoder shipped in :data:`WEIGHTS_DIR` for ``cfg``'s camera (the ``.pt`` beside the
+    first record whose ``camera`` equals :func:`camera_fields`), or None when none ships for it."""
+    mine = camera_fields(cfg)
+    for record in sorted(WEIGHTS_DIR.glob("*.json")):
+        if json.loads(record.read_text()).get("camera") == mine:
+            return record.with_suffix(".pt")
+    return None
+
+
+def init_camera_encoder(encoder: CameraEncoder, value: str, cfg: ModelConfig) -> str:
+    """Start ``encoder`` (built from ``cfg``) as ``--image-init value`` says: '' keeps its seeded
+    weights, ``torchvision`` loads the backbone from the local torch cache
+    (:mod:`clfbev.run.torchvision_init`), ``shipped`` or a path an encoder checkpoint. Returns
+    what it was started from, in words, for the log."""
+    if value == TORCHVISION:
+        return f"backbone from torchvision's {load_torchvision_backbone(encoder.backbone, cfg.cam_width)}"
+    path = resolve_image_init(value, cfg)
+    if path is None:
+        return "from scratch" + (f" (no encoder ships for this camera: {camera_fields(cfg)})" if value else "")
+    load_image_init(encoder, path, cfg)
+    return f"from the encoder checkpoint {path}"
+
+
+def resolve_image_init(value: str, cfg: ModelConfig) -> Path | None:
+    """The encoder checkpoint ``--image-init value`` names for ``cfg``: None for '' (from
+    scratch) and for ``shipped`` when no encoder ships for this camera."""
+    if not value:
+        return None
+    return shipped_encoder(cfg) if value == SHIPPED else Path(value)
 
 
 def save_encoder(path: str | Path, encoder: nn.Module, cfg: ModelConfig, command: list[str], data: dict,

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +46,7 @@ from clfbev.model import CLFusionBEV
 from clfbev.run.checkpoint import REQUIRED, RESUME_FIELDS, Checkpoints, check_matches, load_checkpoint
 from clfbev.run.epochs import EpochSamples, epoch_batches, precise_batchnorm
 from clfbev.run.evaluate import evaluate_model
-from clfbev.run.image_init import load_image_init
+from clfbev.run.image_init import init_camera_encoder
 from clfbev.run.run_log import ScalarLog, code_version, write_run_json
 from clfbev.run.train_config import TrainConfig, check_resumable
 from clfbev.supervision.targets import Targets, TrainingCollate, training_loss
@@ -204,7 +205,8 @@ def start_state(cfg: ModelConfig, variant: str, tc: TrainConfig, device: torch.d
     if tc.image_init and ckpt is None:     # a resumed run's checkpoint already holds the encoder
         if model.camera_encoder is None:
             raise ConfigError(f"--image-init {tc.image_init}: the variant '{variant}' has no camera encoder")
-        load_image_init(model.camera_encoder, tc.image_init, cfg)
+        started = init_camera_encoder(model.camera_encoder, tc.image_init, cfg)
+        print(f"clfbev train: camera encoder {started}", file=sys.stderr)
     model = model.to(device)
     state = TrainState(model, torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay))
     if ckpt is not None:

@@ -19,6 +19,7 @@ from clfbev.config import VARIANTS, preset_of
 from clfbev.errors import CheckpointError, ConfigError
 
 VERSION = "v1.0-sim"
+SHIPPED = "shipped"      # --image-init: the encoder shipped with clfbev for the config's camera
 
 
 def setting(help: str, *, flag: str | None = None, lo: float | None = None, hi: float | None = None,
@@ -48,7 +49,8 @@ class TrainConfig:
     ``precise_bn_batches``: after the last step, BatchNorm's running statistics are recomputed
     over this many training batches (:func:`clfbev.run.epochs.precise_batchnorm`).
     ``image_init``: the camera encoder starts from an encoder checkpoint of ``clfbev pretrain``
-    (:mod:`clfbev.run.image_init`) instead of its seeded initialisation.
+    (:mod:`clfbev.run.image_init`) instead of its seeded initialisation: a path, or
+    :data:`SHIPPED`, the one shipped in ``clfbev/weights/`` for the config's camera.
     """
 
     train_split: str = field(default="sim-train", metadata=setting(
@@ -92,8 +94,10 @@ class TrainConfig:
         "recompute BatchNorm's statistics over this many training batches after the last step (0: off)",
         lo=0, recipe=True, metavar="N"))
     image_init: str = field(default="", metadata=setting(
-        "start the camera encoder from this encoder checkpoint of `clfbev pretrain` (not on --resume; "
-        "'': from scratch)", metavar="PATH"))
+        "start the camera encoder from an encoder checkpoint of `clfbev pretrain` (not on --resume): PATH, "
+        f"'{SHIPPED}' (the one shipped in clfbev/weights/ for the config's camera; from scratch where none "
+        "ships for it), 'torchvision' (torchvision's ImageNet ResNet backbone from the local torch cache, for a "
+        "cam_width of 64) or '' (from scratch)", recipe=True, metavar="PATH"))
 
 
 # The fields that do not change the trained weights: a resume and the results table ignore them.
@@ -103,19 +107,23 @@ BOOKKEEPING: frozenset[str] = frozenset(f.name for f in fields(TrainConfig) if f
 def recipe(preset: str, variant: str) -> TrainConfig:
     """The training recipe of a model preset ('tiny' or 'paper') for ``variant``.
 
-    ``tiny`` (a 2-core CPU, a few hundred generated samples, from scratch): 8 epochs at batch 2,
+    ``tiny`` (a 2-core CPU, a few hundred generated samples): 8 epochs at batch 2,
     AdamW at a peak lr of 2e-3 with 5% warmup and cosine decay (docs/benchmarks.md compares
     learning rates; PointPillars on nuScenes learns at 3e-3 and not at 1.5e-4), augmentation on,
     and 10 objects pasted per sample (SECOND's GT sampling, the largest gain on small sets), none
     in the last 20% of the steps. The ``camera`` variant pastes nothing: the pasted objects exist
-    only in the lidar, and a camera model would be taught to find objects with no pixels.
+    only in the lidar, and a camera model would be taught to find objects with no pixels. Every
+    variant with a camera starts its image encoder from the one shipped for its camera
+    (``clfbev/weights/``, made by ``scripts/pretrain_encoder.sh`` on dense labels): image
+    features learned from scratch on a few thousand images do not find distant objects.
     ``paper``: the paper's AdamW at 2e-4, weight decay 1e-2, 20 epochs.
     """
     if preset == "paper":
         return TrainConfig()
     if preset != "tiny":
         raise ConfigError(f"no training recipe for preset {preset!r} (have: tiny, paper)")
-    return TrainConfig(lr=2e-3, epochs=8, gt_paste=0 if variant == "camera" else 10, gt_paste_fade=0.2)
+    return TrainConfig(lr=2e-3, epochs=8, gt_paste=0 if variant == "camera" else 10, gt_paste_fade=0.2,
+                       image_init="" if variant == "lidar" else SHIPPED)
 
 
 # ---------------------------------------------------------------- the options

@@ -127,6 +127,44 @@ def _forcing_winners(forced_row: Tensor, forced_iou: Tensor) -> Tensor:
     return first[slot] == gt
 
 
+def _centre_anchors(grid: AnchorGrid, gt_boxes: Tensor, gt_cls: Tensor, rot: Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """The ``k`` (<= 4) anchors of each GT's class and rotation ``rot`` whose centres lie nearest
+    to its centre (ties to the lower anchor index), and their distances: two (M, k) tensors.
+    They lie in the 3 x 3 cells around the nearest one (the 4 nearest centres of a square grid
+    are the 2 x 2 cells around the point); where the grid's edge cuts those, fewer are found
+    (their distance is inf)."""
+    m, ny, nx = gt_boxes.shape[0], grid.ys.shape[0], grid.xs.shape[0]
+    step = torch.tensor([-1, 0, 1], device=gt_boxes.device)
+    iy = (_nearest_index(grid.ys, gt_boxes[:, 1])[:, None, None] + step[None, :, None]).expand(m, 3, 3)
+    ix = (_nearest_index(grid.xs, gt_boxes[:, 0])[:, None, None] + step[None, None, :]).expand(m, 3, 3)
+    inside = (iy >= 0) & (iy < ny) & (ix >= 0) & (ix < nx)
+    iy, ix, inside = iy.clamp(0, ny - 1).reshape(m, 9), ix.clamp(0, nx - 1).reshape(m, 9), inside.reshape(m, 9)
+    dist = torch.hypot(grid.xs.double()[ix] - gt_boxes[:, :1].double(), grid.ys.double()[iy] - gt_boxes[:, 1:2].double())
+    dist = torch.where(inside, dist, torch.inf)
+    rows = grid.row(iy, ix, gt_cls[:, None], rot[:, None])
+    by_row = torch.sort(rows, dim=1, stable=True).indices      # then a stable sort by distance: ties to the lower row
+    rows, dist = rows.gather(1, by_row), dist.gather(1, by_row)
+    order = torch.sort(dist, dim=1, stable=True).indices[:, :k]
+    return rows.gather(1, order), dist.gather(1, order)
+
+
+def _centre_positives(labels: Tensor, grid: AnchorGrid, gt_boxes: Tensor, gt_cls: Tensor, rot: Tensor,
+                      k: int) -> tuple[Tensor, Tensor]:
+    """FCOS/ATSS-style centre sampling on top of the IoU matching: each GT's ``k`` nearest
+    anchors (:func:`_centre_anchors`) that are not positive already become its positives; an
+    anchor several GT reach goes to the nearest (ties to the lower GT index). Returns the rows
+    (K,) and their GT (K,)."""
+    rows, dist = _centre_anchors(grid, gt_boxes, gt_cls, rot, k)
+    gt = torch.arange(gt_boxes.shape[0], device=rows.device)[:, None].expand_as(rows)
+    free = (labels[rows] <= 0) & torch.isfinite(dist)
+    rows, dist, gt = rows[free], dist[free], gt[free]
+    anchor, slot = torch.unique(rows, return_inverse=True)
+    nearest = dist.new_full((anchor.shape[0],), torch.inf).scatter_reduce(0, slot, dist, "amin")
+    tie = dist == nearest[slot]
+    first = torch.full_like(anchor, gt_boxes.shape[0]).scatter_reduce(0, slot[tie], gt[tie], "amin")
+    return anchor, first
+
+
 def _regression_targets(
     flat_anchors: Tensor, gt_boxes: Tensor, rows: Tensor, gt_of_rows: Tensor, dir_offset: float, n_dir_bins: int
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -151,6 +189,7 @@ def assign_targets(
     thresholds: Sequence[tuple[float, float]],
     dir_offset: float = DIR_OFFSET,
     n_dir_bins: int = 2,
+    min_positives: int = 1,
 ) -> AnchorTargets:
     """Class-aware anchor matching by BEV IoU, as in SECOND, for one sample.
 
@@ -169,6 +208,12 @@ def assign_targets(
     the same anchor, the one with the highest IoU with it keeps it (ties to the lower GT
     index); the others keep only their above-threshold anchors.
 
+    With ``min_positives`` k > 1, each GT also takes, as its positives, those of its k anchors
+    (of its class and closest rotation) nearest to its centre that are not positive already
+    (FCOS's and ATSS's centre sampling): a cone or a bicycle, which no anchor overlaps above
+    the threshold, then trains k anchors instead of its one forced anchor. An anchor several GT
+    reach this way goes to the nearest.
+
     Only the pairs that can matter get an exact IoU (:mod:`clfbev.supervision.anchor_pairs`).
 
     Parameters
@@ -183,12 +228,15 @@ def assign_targets(
     thresholds : ``(pos, neg)`` per class with ``0 < neg <= pos``, e.g.
         :func:`clfbev.anchors.match_thresholds`.
     dir_offset, n_dir_bins : direction binning, see :func:`direction_target`.
+    min_positives : 1 (SECOND's matching) to 4, see above.
 
     Returns
     -------
     AnchorTargets with ``N = ny * nx * n_cls * n_rot`` rows and ``code_size = 7 + E``.
     """
     grid = _checked_grid(anchors, thresholds)
+    if not 1 <= min_positives <= 4:
+        raise ValueError(f"min_positives must be in [1, 4], got {min_positives}")
     device = anchors.device
     flat_anchors = anchors.reshape(-1, 7)
     gt_boxes = gt_boxes.to(device=device, dtype=anchors.dtype)
@@ -209,7 +257,12 @@ def assign_targets(
     labels[forced_row[keep]] = cls[keep] + 1                                 # forced positives regress
     matched[forced_row[keep]] = torch.arange(boxes.shape[0], device=device)[keep]   # the GT that forced them
 
-    positive = torch.cat([above_rows, forced_row[keep]]).unique()
+    positive = torch.cat([above_rows, forced_row[keep]])
+    if min_positives > 1:
+        centre_rows, centre_gt = _centre_positives(labels, grid, boxes, cls, forced_rot, min_positives)
+        labels[centre_rows], matched[centre_rows] = cls[centre_gt] + 1, centre_gt
+        positive = torch.cat([positive, centre_rows])
+    positive = positive.unique()
     matched[positive] = gt_index[matched[positive]]  # back to the caller's GT indices
     box_targets, box_weights, dir_targets = _regression_targets(
         flat_anchors, gt_boxes, positive, matched[positive], dir_offset, n_dir_bins

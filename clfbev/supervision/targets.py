@@ -59,7 +59,8 @@ def build_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool
     targets only with ``cameras``."""
     thresholds = match_thresholds(cfg.class_names)
     anchor = stack_targets([
-        assign_targets(anchors, boxes[:, : cfg.code_size], labels, thresholds, n_dir_bins=cfg.n_dir_bins)
+        assign_targets(anchors, boxes[:, : cfg.code_size], labels, thresholds, n_dir_bins=cfg.n_dir_bins,
+                       min_positives=cfg.min_positives)
         for boxes, labels in zip(batch.gt_boxes, batch.gt_labels)
     ])
     if not cameras:

@@ -22,7 +22,7 @@ from clfbev.errors import DataError
 from clfbev.run.evaluate import (attribute_for, detection_config_for, detections_to_results, evaluate, predict_split,
                                  write_results)
 from clfbev.head import Detections
-from conftest import run_simgen
+from conftest import run_simgen, script_module
 
 
 def _classes_with_points(nusc, dataset) -> tuple[str, ...]:
@@ -80,6 +80,22 @@ def _gt_as_predictions(dataroot, tmp_path) -> tuple[list[str], dict, dict]:
                                     [s.T_global_from_lidar for s in samples], classes)
     path = write_results(tmp_path / "results.json", results)
     return ds.sample_tokens, results, evaluate(ds.nusc, path, "sim-val", tmp_path / "eval", classes)
+
+
+def test_recall_by_range_finds_every_ground_truth_box(tiny_dataset, tmp_path):
+    """scripts/recall_by_range.py on the GT as predictions: every car with points has a box of
+    score 1 at its centre, in every range band that has one; without predictions none has."""
+    rr = script_module("recall_by_range")
+    _, results, _ = _gt_as_predictions(tiny_dataset, tmp_path)
+    nusc = NuScenes("v1.0-sim", str(tiny_dataset), verbose=False)
+    dist, best = rr.best_scores(nusc, results, "sim-val", "car")
+    assert len(dist) > 5 and (best == 1.0).all()
+    rows = rr.table(dist, best, 0.3).splitlines()[2:]
+    for (lo, hi), row in zip(rr.BANDS, rows):
+        n = int(((dist >= lo) & (dist < hi)).sum())
+        assert row == (f"| {lo}-{hi} m | {n} | 1.00 | 1.00 |" if n else f"| {lo}-{hi} m | 0 | - | - |")
+    _, none = rr.best_scores(nusc, {}, "sim-val", "car")
+    assert len(none) == len(best) and (none == 0).all()
 
 
 def test_class_beyond_its_range_is_not_evaluated(tiny_dataset, tmp_path):

@@ -8,7 +8,6 @@ folder, so that what it creates (or must not create) is visible.
 from __future__ import annotations
 
 import ast
-import importlib.util
 import json
 import os
 import shutil
@@ -17,20 +16,15 @@ from pathlib import Path
 
 import pytest
 
+from conftest import script_module
+
 ROOT = Path(__file__).resolve().parents[2]
 RUNS = ["lidar_s0", "full_s0", "concat_s0", "mcm_s0", "camera_s0", "lidar_s1", "full_s1"]
 CLASSES = ["car", "bus", "pedestrian", "traffic_cone"]   # the devkit's order, restricted
 TP = ("trans_err", "scale_err", "orient_err", "vel_err", "attr_err")
 
 
-def _module():
-    spec = importlib.util.spec_from_file_location("results_table", ROOT / "scripts" / "results_table.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-rt = _module()
+rt = script_module("results_table")
 
 
 # ---------------------------------------------------------------- fake benchmark folders
@@ -340,9 +334,7 @@ def test_a_recorded_run_counts_only_with_the_same_settings(tmp_path):
 def test_the_data_identity_follows_the_layout_not_the_sensor_counts(tiny_dataset, tmp_path):
     """scripts/data_identity.py: the same for a copy and for other num_lidar_pts / visibility;
     another for an annotation moved by 1 cm or for other splits."""
-    spec = importlib.util.spec_from_file_location("data_identity", ROOT / "scripts" / "data_identity.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = script_module("data_identity")
     copy = tmp_path / "data"
     shutil.copytree(tiny_dataset / "v1.0-sim", copy / "v1.0-sim")
     table = copy / "v1.0-sim" / "sample_annotation.json"
@@ -373,9 +365,7 @@ def test_the_data_identity_follows_the_layout_not_the_sensor_counts(tiny_dataset
     ("sample_annotation", "{}", "expected a list of records"),
 ])
 def test_a_junk_table_is_one_line_for_the_data_identity(tmp_path, capsys, table, text, expected):
-    spec = importlib.util.spec_from_file_location("data_identity", ROOT / "scripts" / "data_identity.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = script_module("data_identity")
     tables = tmp_path / "data" / "v1.0-sim"
     tables.mkdir(parents=True)
     for name, records in (("category", [{"token": "c", "name": "car"}]), ("instance", [{"token": "i", "category_token": "c"}]),
