@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import geometry
+
 
 @dataclass(frozen=True)
 class Turn:
@@ -100,9 +102,5 @@ def trailer_yaw(hitch: np.ndarray, axle: np.ndarray, tractor_yaw: np.ndarray) ->
     like the tractor's, they carry no 2 pi jumps."""
     d = hitch - axle
     bearing = np.arctan2(d[:, 1], d[:, 0])
-    return tractor_yaw - wrap(tractor_yaw - bearing)
+    return tractor_yaw - geometry.wrap_angle(tractor_yaw - bearing)
 
-
-def wrap(angle: np.ndarray) -> np.ndarray:
-    """Angles to [-pi, pi); 0 stays exactly 0."""
-    return (angle + np.pi) % (2 * np.pi) - np.pi

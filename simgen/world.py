@@ -123,7 +123,7 @@ def _interp_angle(times: np.ndarray, angles: np.ndarray, t: float) -> np.ndarray
     """Linear interpolation of (n, K) angles at scalar time t -> (n,), turning the shorter way
     between the two samples (a constant heading comes back exactly)."""
     k, a = _bracket(times, t)
-    step = (angles[:, k + 1] - angles[:, k] + np.pi) % (2 * np.pi) - np.pi
+    step = geometry.wrap_angle(angles[:, k + 1] - angles[:, k])
     return angles[:, k] + a * step
 
 

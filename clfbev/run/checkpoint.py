@@ -42,19 +42,24 @@ def save_checkpoint(path: str | Path, state: dict) -> Path:
     return io.save_torch(path, {"format": FORMAT, **state})
 
 
-def load_checkpoint(path: str | Path, required: tuple[str, ...] = REQUIRED) -> dict:
-    """The checkpoint dict at ``path`` (on the CPU), loaded with ``weights_only=True``, holding at
-    least the fields ``required``."""
-    path = Path(path)
+def read_torch(path: Path) -> object:
+    """``torch.load(path, weights_only=True)`` on the CPU; any failure a CheckpointError naming the file."""
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         # Any bytes may be in a file the user names, and the unpickler fails on them as it may
         # (KeyError for text, EOFError or RuntimeError when truncated, UnpicklingError, ...).
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({first})") from None
+
+
+def load_checkpoint(path: str | Path, required: tuple[str, ...] = REQUIRED) -> dict:
+    """The checkpoint dict at ``path`` (on the CPU), loaded with ``weights_only=True``, holding at
+    least the fields ``required``."""
+    path = Path(path)
+    ckpt = read_torch(path)
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {path} is not a {FORMAT} file")
     missing = [k for k in required if k not in ckpt]

@@ -32,6 +32,7 @@ from clfbev import io
 from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import ModelConfig
 from clfbev.errors import CheckpointError
+from clfbev.run.checkpoint import read_torch
 from clfbev.run.torchvision_init import TORCHVISION, load_torchvision_backbone
 from clfbev.run.train_config import SHIPPED
 
@@ -84,18 +85,6 @@ def save_encoder(path: str | Path, encoder: nn.Module, cfg: ModelConfig, command
     return io.save_torch(path, {"format": ENCODER_FORMAT, "encoder": encoder.state_dict(),
                                 "camera": camera_fields(cfg), "command": list(command), "data": data,
                                 "step": step, "code_version": version})
-
-
-def read_torch(path: Path) -> object:
-    """``torch.load(path, weights_only=True)`` on the CPU; any failure a CheckpointError naming the file."""
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint {path} does not exist")
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        # Any bytes may be in a file the user names; the unpickler fails on them as it may.
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({first})") from None
 
 
 def load_encoder_checkpoint(path: str | Path) -> dict:

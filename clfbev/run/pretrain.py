@@ -34,9 +34,9 @@ from clfbev.config import ModelConfig
 from clfbev.data import Batch
 from clfbev.errors import CheckpointError
 from clfbev.pretrain_data import DenseCollate, DenseLabelled, data_identity
-from clfbev.run.checkpoint import Checkpoints
+from clfbev.run.checkpoint import Checkpoints, read_torch
 from clfbev.run.epochs import epoch_batches
-from clfbev.run.image_init import read_torch, save_encoder
+from clfbev.run.image_init import save_encoder
 from clfbev.run.run_log import ScalarLog, code_version, write_run_json
 from clfbev.run.train import Loop, TrainState, lr_at, optimizer_step, restore_state
 from clfbev.run.train_config import VERSION, setting

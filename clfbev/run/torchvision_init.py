@@ -20,6 +20,7 @@ import torch
 
 from clfbev.errors import CheckpointError
 from clfbev.resnet import ResNet
+from clfbev.run.checkpoint import read_torch
 
 TORCHVISION = "torchvision"
 TORCHVISION_WIDTH = 64
@@ -40,10 +41,10 @@ def torchvision_names(ours: str) -> str:
     return ".".join([layer, block, module, *rest])
 
 
-def cached_weights(depth: int, hub_dir: str | Path | None = None) -> Path:
+def cached_weights(depth: int) -> Path:
     """torchvision's ResNet-``depth`` weights file in the local torch cache; CheckpointError when
     there is none (naming the folder looked in)."""
-    folder = Path(hub_dir if hub_dir is not None else torch.hub.get_dir()) / "checkpoints"
+    folder = Path(torch.hub.get_dir()) / "checkpoints"
     found = sorted(folder.glob(f"resnet{depth}-*.pth"))
     if not found:
         raise CheckpointError(
@@ -53,18 +54,14 @@ def cached_weights(depth: int, hub_dir: str | Path | None = None) -> Path:
     return found[-1]
 
 
-def load_torchvision_backbone(backbone: ResNet, width: int, hub_dir: str | Path | None = None) -> Path:
+def load_torchvision_backbone(backbone: ResNet, width: int) -> Path:
     """Load torchvision's ImageNet weights into ``backbone`` (every one of its tensors, shapes
     checked; torchvision's classifier is not used). Returns the file loaded."""
     if width != TORCHVISION_WIDTH:
         raise CheckpointError(f"--image-init {TORCHVISION}: torchvision's ResNets have width {TORCHVISION_WIDTH}, "
                               f"this config's camera has cam_width {width}")
-    path = cached_weights(backbone.depth, hub_dir)
-    try:
-        theirs = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise CheckpointError(f"{path} is corrupt or not a state dict ({first})") from None
+    path = cached_weights(backbone.depth)
+    theirs = read_torch(path)
     mine = backbone.state_dict()
     if not isinstance(theirs, dict):
         raise CheckpointError(f"{path} is not a state dict")

@@ -208,11 +208,9 @@ def assign_targets(
     the same anchor, the one with the highest IoU with it keeps it (ties to the lower GT
     index); the others keep only their above-threshold anchors.
 
-    With ``min_positives`` k > 1, each GT also takes, as its positives, those of its k anchors
-    (of its class and closest rotation) nearest to its centre that are not positive already
-    (FCOS's and ATSS's centre sampling): a cone or a bicycle, which no anchor overlaps above
-    the threshold, then trains k anchors instead of its one forced anchor. An anchor several GT
-    reach this way goes to the nearest.
+    With ``min_positives`` k > 1, each GT also takes its k nearest anchors (its class, closest
+    rotation) that are not positive already (FCOS/ATSS centre sampling; one that two GT reach goes
+    to the nearer): a cone or a bicycle then trains k anchors instead of its one forced anchor.
 
     Only the pairs that can matter get an exact IoU (:mod:`clfbev.supervision.anchor_pairs`).
 
@@ -251,18 +249,7 @@ def assign_targets(
     forced_rot = _closest_rotation(grid, boxes[:, 6], cls)
     iou = exact_ious(flat_anchors, boxes, pairs, neg_thr[cls], forced_rot)
 
-    labels, matched, above_rows = _threshold_labels(grid, pairs, iou, boxes.shape[0], pos_thr, neg_thr)
-    forced_row, forced_iou = _forced_anchors(grid, pairs, iou, boxes, cls, forced_rot)
-    keep = _forcing_winners(forced_row, forced_iou)
-    labels[forced_row[keep]] = cls[keep] + 1                                 # forced positives regress
-    matched[forced_row[keep]] = torch.arange(boxes.shape[0], device=device)[keep]   # the GT that forced them
-
-    positive = torch.cat([above_rows, forced_row[keep]])
-    if min_positives > 1:
-        centre_rows, centre_gt = _centre_positives(labels, grid, boxes, cls, forced_rot, min_positives)
-        labels[centre_rows], matched[centre_rows] = cls[centre_gt] + 1, centre_gt
-        positive = torch.cat([positive, centre_rows])
-    positive = positive.unique()
+    labels, matched, positive = _labels(grid, pairs, iou, boxes, cls, forced_rot, pos_thr, neg_thr, min_positives)
     matched[positive] = gt_index[matched[positive]]  # back to the caller's GT indices
     box_targets, box_weights, dir_targets = _regression_targets(
         flat_anchors, gt_boxes, positive, matched[positive], dir_offset, n_dir_bins
@@ -275,6 +262,24 @@ def assign_targets(
         dir_targets=dir_targets,
         matched_gt=matched,
     )
+
+
+def _labels(grid: AnchorGrid, pairs: Pairs, iou: Tensor, boxes: Tensor, cls: Tensor, forced_rot: Tensor,
+            pos_thr: Tensor, neg_thr: Tensor, min_positives: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The matching rules of :func:`assign_targets` in turn (the IoU thresholds, each GT's forced
+    anchor, centre sampling): labels (N,), matched GT (N,; indices into ``boxes``) and the
+    positive rows (K,)."""
+    labels, matched, above_rows = _threshold_labels(grid, pairs, iou, boxes.shape[0], pos_thr, neg_thr)
+    forced_row, forced_iou = _forced_anchors(grid, pairs, iou, boxes, cls, forced_rot)
+    keep = _forcing_winners(forced_row, forced_iou)
+    labels[forced_row[keep]] = cls[keep] + 1                                 # forced positives regress
+    matched[forced_row[keep]] = torch.arange(boxes.shape[0], device=boxes.device)[keep]   # the GT that forced them
+    positive = torch.cat([above_rows, forced_row[keep]])
+    if min_positives > 1:
+        centre_rows, centre_gt = _centre_positives(labels, grid, boxes, cls, forced_rot, min_positives)
+        labels[centre_rows], matched[centre_rows] = cls[centre_gt] + 1, centre_gt
+        positive = torch.cat([positive, centre_rows])
+    return labels, matched, positive.unique()
 
 
 def _checked_grid(anchors: Tensor, thresholds: Sequence[tuple[float, float]]) -> AnchorGrid:
