@@ -53,6 +53,7 @@ class ModelConfig:
     Head / decoding: ``anchor_rotations``, ``code_size``, ``n_dir_bins``, ``prior_prob``,
     ``velocity_tower`` (0: the velocity is two of the head's 1x1 residuals; else the width of
     the :class:`clfbev.head.VelocityTower` that predicts it from the BEV and the sweep bands),
+    ``velocity_detach`` (the tower's gradient stops at the shared BEV features),
     ``heading_from_motion`` (m/s, >= 0: decoding turns a box's yaw by pi where it points against
     its predicted velocity and the predicted speed is above this; 0: off), ``score_thr``,
     ``nms_iou``, ``max_per_sample``, ``pre_nms``.
@@ -103,6 +104,7 @@ class ModelConfig:
     n_dir_bins: int = 2
     prior_prob: float = 0.01
     velocity_tower: int = 0
+    velocity_detach: bool = False
     heading_from_motion: float = 0.0
     score_thr: float = 0.1
     nms_iou: float = 0.2

@@ -27,10 +27,11 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from clfbev.anchors import anchor_class_ids
-from clfbev.layers import conv_bn_relu
+from clfbev.layers import BN_EPS, BN_MOMENTUM, conv_bn_relu
 from clfbev.ops.boxes import decode_boxes, limit_period, rotated_nms
 
 # Direction bins start at this heading: with 2 bins, bin 0 is [-pi/4, 3pi/4) and bin 1
@@ -88,40 +89,43 @@ class HeadOutput:
 
 
 class VelocityTower(nn.Module):
-    """The velocity residuals from their own convolutions: three 3x3 conv-BN-ReLU layers with
-    dilations 1, 2 and 4 (a 15-cell, 12 m receptive field on the 0.8 m BEV, the length of a
-    car's 10-sweep trail and the car), then a 1x1 convolution to ``vx, vy`` per anchor.
+    """The velocity residuals from their own convolutions, on two scales: a 1x1 conv-BN-ReLU
+    reduces the input to ``channels``; a 3x3 stride-2 conv and two 3x3 convs (dilations 1 and
+    2) on the half-resolution grid see 15 BEV cells (12 m on the 0.8 m BEV: the length of a
+    car's 10-sweep trail and the car); their output, upsampled (nearest) and joined with the
+    reduced full-resolution input, gives ``vx, vy`` per anchor through a 1x1 convolution.
 
-    Why: in a shared 1x1 head the velocity channels read the features that classification and
-    box regression shape, in which parked and moving cars look alike; the L1-like loss then
-    settles on the parked majority's 0 (docs/benchmarks.md, the linear probe). Here only the
-    velocity loss trains these layers, on the backbone output and the sweep bands (the point
-    counts per lag band, :mod:`clfbev.sweep_bev`), the trail itself.
+    Why its own layers: in a shared 1x1 head the velocity channels read the features that
+    classification and box regression shape, in which parked and moving cars look alike; the
+    L1-like loss then settles on the parked majority's 0 (docs/benchmarks.md, the linear
+    probe). Here only the velocity loss trains these layers, on the backbone output and the
+    sweep bands (the point counts per lag band, :mod:`clfbev.sweep_bev`), the trail itself.
+    Why two scales: the same reach with 3x3 convolutions on the full grid cost a fifth of a
+    training step; at half resolution it costs a quarter of that, and the full-resolution
+    skip keeps a pedestrian's velocity its own beside a car's.
 
     Parameters
     ----------
     in_ch : channels of the backbone output plus the motion channels.
     n_anchors : anchors per cell.
-    channels : width of the three convolutions.
+    channels : width of the convolutions.
     """
-
-    DILATIONS = (1, 2, 4)
 
     def __init__(self, in_ch: int, n_anchors: int, channels: int) -> None:
         super().__init__()
-        layers: list[nn.Module] = []
-        c = in_ch
-        for d in self.DILATIONS:
-            layers += conv_bn_relu(c, channels, dilation=d)
-            c = channels
-        self.body = nn.Sequential(*layers)
-        self.out = nn.Conv2d(channels, n_anchors * 2, 1)
+        self.reduce = nn.Sequential(nn.Conv2d(in_ch, channels, 1, bias=False),
+                                    nn.BatchNorm2d(channels, eps=BN_EPS, momentum=BN_MOMENTUM), nn.ReLU(inplace=True))
+        self.coarse = nn.Sequential(*conv_bn_relu(channels, channels, stride=2), *conv_bn_relu(channels, channels),
+                                    *conv_bn_relu(channels, channels, dilation=2))
+        self.out = nn.Conv2d(2 * channels, n_anchors * 2, 1)
         nn.init.normal_(self.out.weight, std=0.01)   # starts at 0 m/s, like the head's residuals
         nn.init.zeros_(self.out.bias)
 
     def forward(self, x: Tensor) -> Tensor:
         """x (B, in_ch, H, W) -> (B, n_anchors * 2, H, W), anchor-major ``(vx, vy)``."""
-        return self.out(self.body(x))
+        fine = self.reduce(x)
+        coarse = F.interpolate(self.coarse(fine), size=fine.shape[-2:], mode="nearest")
+        return self.out(torch.cat([fine, coarse], dim=1))
 
 
 class AnchorHead(nn.Module):
@@ -140,6 +144,8 @@ class AnchorHead(nn.Module):
     velocity_tower : 0, the velocity is 2 of the 1x1 box residuals; else the width of a
         :class:`VelocityTower` that predicts it (needs ``code_size`` 9).
     motion_ch : channels given to the tower beside the BEV features (the sweep bands).
+    velocity_detach : the tower reads the BEV features without sending its gradient back into
+        them, so the velocity loss cannot reshape the features the boxes are read from.
     """
 
     def __init__(
@@ -152,6 +158,7 @@ class AnchorHead(nn.Module):
         prior_prob: float = 0.01,
         velocity_tower: int = 0,
         motion_ch: int = 0,
+        velocity_detach: bool = False,
     ) -> None:
         super().__init__()
         if velocity_tower and code_size != 9:
@@ -163,6 +170,7 @@ class AnchorHead(nn.Module):
         self.conv_box = nn.Conv2d(in_ch, n_anchors * (7 if velocity_tower else code_size), 1)
         self.conv_dir = nn.Conv2d(in_ch, n_anchors * n_dir_bins, 1)
         self.velocity = VelocityTower(in_ch + motion_ch, n_anchors, velocity_tower) if velocity_tower else None
+        self.velocity_detach = velocity_detach
         # Small weights: the first residuals are ~0 (boxes start at the anchors) and the first
         # scores ~prior_prob everywhere.
         for conv in (self.conv_cls, self.conv_box, self.conv_dir):
@@ -174,7 +182,8 @@ class AnchorHead(nn.Module):
         """bev (B, in_ch, H, W), motion (B, motion_ch, H, W) or None -> HeadOutput on the same grid."""
         box = self.conv_box(bev)
         if self.velocity is not None:
-            tower_in = bev if motion is None else torch.cat([bev, motion], dim=1)
+            shared = bev.detach() if self.velocity_detach else bev
+            tower_in = shared if motion is None else torch.cat([shared, motion], dim=1)
             b, _, h, w = box.shape
             n_anchors = self.n_classes * self.n_rot
             vel = self.velocity(tower_in).view(b, n_anchors, 2, h, w)

@@ -146,6 +146,32 @@ def test_velocity_tower_owns_the_velocity_residuals_only():
         AnchorHead(in_ch=16, n_classes=3, code_size=7, velocity_tower=8)
 
 
+def test_detached_velocity_tower_sends_no_gradient_into_the_bev():
+    """``velocity_detach``: the velocity residuals give the BEV features no gradient (so the
+    velocity loss cannot reshape what the boxes read) and still train the tower; the box
+    residuals' gradient reaches the BEV as before. The forward values are the same."""
+    torch.manual_seed(0)
+    attached = AnchorHead(in_ch=16, n_classes=3, n_rot=2, code_size=9, velocity_tower=8, motion_ch=5)
+    detached = AnchorHead(in_ch=16, n_classes=3, n_rot=2, code_size=9, velocity_tower=8, motion_ch=5,
+                          velocity_detach=True)
+    detached.load_state_dict(attached.state_dict())
+    motion = torch.randn(2, 5, 6, 7)
+    grads = {}
+    for name, head in (("attached", attached), ("detached", detached)):
+        bev = torch.randn(2, 16, 6, 7, generator=torch.Generator().manual_seed(1)).requires_grad_()
+        box = head(bev, motion).box_deltas.view(2, 6, 9, 6, 7)
+        box[:, :, 7:].sum().backward(retain_graph=True)
+        grads[name] = (bev.grad.clone(), [p.grad.abs().sum() for p in head.velocity.parameters()])
+        bev.grad = None
+        box[:, :, :7].sum().backward()
+        assert bev.grad.abs().sum() > 0
+        grads[name + "_values"] = box.detach()
+    assert grads["attached"][0].abs().sum() > 0
+    assert not grads["detached"][0].any()
+    assert all(g > 0 for g in grads["detached"][1])
+    assert torch.equal(grads["attached_values"], grads["detached_values"])
+
+
 def test_gt_on_anchor_is_positive_with_zero_residuals_class_aware():
     names = ("car", "construction_vehicle", "pedestrian")
     anchors = line_anchors(names)

@@ -178,7 +178,7 @@ def test_velocity_tower_trains_and_reads_the_sweep_bands(variant):
     cfg = replace(tiny(), velocity_tower=8)
     model = CLFusionBEV(cfg, variant)
     assert model.motion_ch == (0 if variant == "camera" else cfg.sweep_bands)
-    assert model.head.velocity.body[0].in_channels == cfg.head_in_channels + model.motion_ch
+    assert model.head.velocity.reduce[0].in_channels == cfg.head_in_channels + model.motion_ch
     batch = make_batch(cfg)
     opt = torch.optim.SGD(model.parameters(), lr=1e-3)
     losses = train_step(model, batch, opt)
