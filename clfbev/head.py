@@ -90,19 +90,22 @@ class HeadOutput:
 
 class VelocityTower(nn.Module):
     """The velocity residuals from their own convolutions, on two scales: a 1x1 conv-BN-ReLU
-    reduces the input to ``channels``; a 3x3 stride-2 conv and two 3x3 convs (dilations 1 and
-    2) on the half-resolution grid see 15 BEV cells (12 m on the 0.8 m BEV: the length of a
-    car's 10-sweep trail and the car); their output, upsampled (nearest) and joined with the
-    reduced full-resolution input, gives ``vx, vy`` per anchor through a 1x1 convolution.
+    reduces the input to ``channels``; a 3x3 stride-2 conv and three 3x3 convs (dilations 1, 2
+    and 4) on the half-resolution grid see 31 BEV cells (25 m on the 0.8 m BEV: from a bus's
+    centre, both its ends and a 10-sweep trail behind it); their output, upsampled (nearest)
+    and joined with the reduced full-resolution input, gives ``vx, vy`` per anchor through a
+    1x1 convolution.
 
     Why its own layers: in a shared 1x1 head the velocity channels read the features that
     classification and box regression shape, in which parked and moving cars look alike; the
     L1-like loss then settles on the parked majority's 0 (docs/benchmarks.md, the linear
     probe). Here only the velocity loss trains these layers, on the backbone output and the
     sweep bands (the point counts per lag band, :mod:`clfbev.sweep_bev`), the trail itself.
-    Why two scales: the same reach with 3x3 convolutions on the full grid cost a fifth of a
-    training step; at half resolution it costs a quarter of that, and the full-resolution
-    skip keeps a pedestrian's velocity its own beside a car's.
+    Why this reach: with 15 cells (12 m) the tower found the speed of moving buses and trucks
+    but often not their sign, as it could not see which end trails the sweeps. Why two scales:
+    3x3 convolutions on the full grid cost a fifth of a training step; at half resolution a
+    quarter of that, and the full-resolution skip keeps a pedestrian's velocity its own beside
+    a car's.
 
     Parameters
     ----------
@@ -111,12 +114,16 @@ class VelocityTower(nn.Module):
     channels : width of the convolutions.
     """
 
+    DILATIONS = (1, 2, 4)
+
     def __init__(self, in_ch: int, n_anchors: int, channels: int) -> None:
         super().__init__()
         self.reduce = nn.Sequential(nn.Conv2d(in_ch, channels, 1, bias=False),
                                     nn.BatchNorm2d(channels, eps=BN_EPS, momentum=BN_MOMENTUM), nn.ReLU(inplace=True))
-        self.coarse = nn.Sequential(*conv_bn_relu(channels, channels, stride=2), *conv_bn_relu(channels, channels),
-                                    *conv_bn_relu(channels, channels, dilation=2))
+        layers = conv_bn_relu(channels, channels, stride=2)
+        for d in self.DILATIONS:
+            layers += conv_bn_relu(channels, channels, dilation=d)
+        self.coarse = nn.Sequential(*layers)
         self.out = nn.Conv2d(2 * channels, n_anchors * 2, 1)
         nn.init.normal_(self.out.weight, std=0.01)   # starts at 0 m/s, like the head's residuals
         nn.init.zeros_(self.out.bias)
