@@ -101,11 +101,10 @@ class VelocityTower(nn.Module):
     L1-like loss then settles on the parked majority's 0 (docs/benchmarks.md, the linear
     probe). Here only the velocity loss trains these layers, on the backbone output and the
     sweep bands (the point counts per lag band, :mod:`clfbev.sweep_bev`), the trail itself.
-    Why this reach: with 15 cells (12 m) the tower found the speed of moving buses and trucks
-    but often not their sign, as it could not see which end trails the sweeps. Why two scales:
-    3x3 convolutions on the full grid cost a fifth of a training step; at half resolution a
-    quarter of that, and the full-resolution skip keeps a pedestrian's velocity its own beside
-    a car's.
+    Why this reach: with 15 cells (12 m) the tower found a moving bus's speed but not its sign,
+    as from the bus's centre it saw neither end, so not the side the sweeps trail. Why two
+    scales: 3x3 convolutions of this width on the full grid cost a fifth of a training step,
+    these 8%; the full-resolution skip keeps a pedestrian's velocity its own beside a car's.
 
     Parameters
     ----------
