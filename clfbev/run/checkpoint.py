@@ -25,7 +25,8 @@ from pathlib import Path
 import torch
 
 from clfbev import io
-from clfbev.config import VARIANTS, ModelConfig, config_from_dict
+from clfbev.config import VARIANTS, ModelConfig
+from clfbev.config_file import config_from_dict
 from clfbev.errors import CheckpointError, ConfigError
 from clfbev.model import CLFusionBEV
 from clfbev.run.train_config import TrainConfig

@@ -28,7 +28,8 @@ import numpy as np
 import torch
 
 from clfbev import io
-from clfbev.config import VARIANTS, load_config
+from clfbev.config import VARIANTS
+from clfbev.config_file import load_config
 from clfbev.corruptions import parse as parse_corruption
 from clfbev.data import NuScenesDetection, collate, load_nuscenes
 from clfbev.errors import ConfigError, DataError, OutputError, run_guarded

@@ -15,7 +15,8 @@ from dataclasses import Field, asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import get_type_hints
 
-from clfbev.config import VARIANTS, preset_of
+from clfbev.config import VARIANTS
+from clfbev.config_file import preset_of
 from clfbev.errors import CheckpointError, ConfigError
 
 VERSION = "v1.0-sim"

@@ -23,7 +23,8 @@ import numpy as np
 import pytest
 import torch
 
-from clfbev.config import VARIANTS, load_config, paper, tiny
+from clfbev.config import VARIANTS, paper, tiny
+from clfbev.config_file import load_config
 from clfbev.data import Batch, NuScenesDetection
 from clfbev.errors import ConfigError
 from clfbev.lidar_encoder import SparseEncoder

@@ -152,7 +152,7 @@ def test_semantic_lift_puts_the_class_probabilities_in_the_camera_bev():
 
 
 def test_semantic_lift_needs_the_perspective_loss(tmp_path):
-    from clfbev.config import load_config
+    from clfbev.config_file import load_config
 
     with pytest.raises(ConfigError, match="loss.semantic"):
         replace(tiny(), cam_semantic_lift=True)

@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from clfbev.camera_encoder import CameraGeometry
-from clfbev.config import load_config
+from clfbev.config_file import load_config
 from clfbev.errors import CheckpointError
 from clfbev.model import CLFusionBEV
 from clfbev.run.image_init import load_image_init

@@ -12,7 +12,8 @@ import pytest
 import torch
 from conftest import TINY_ARGS, run_simgen
 
-from clfbev.config import config_from_dict, tiny
+from clfbev.config import tiny
+from clfbev.config_file import config_from_dict
 from clfbev.corruptions import Corruption, parse
 from clfbev.data import NuScenesDetection
 from clfbev.model import CLFusionBEV

@@ -7,7 +7,8 @@ import json
 import pytest
 import torch
 
-from clfbev.config import VARIANTS, load_config, tiny
+from clfbev.config import VARIANTS, tiny
+from clfbev.config_file import load_config
 from clfbev.data import CAMERAS
 from clfbev.run.image_init import WEIGHTS_DIR, camera_fields, load_encoder_checkpoint, resolve_image_init
 from clfbev.run.train import start_state

@@ -128,7 +128,7 @@ def test_a_resume_ignores_exactly_the_bookkeeping_settings():
 def test_precise_batchnorm_is_the_exact_average_over_its_batches(tiny_dataset, micro):
     """After precise_batchnorm, a BatchNorm's running mean is the mean of the batch means it saw
     (cumulative, not exponential), its momentum is restored, and a second call repeats it."""
-    from clfbev.config import load_config
+    from clfbev.config_file import load_config
     from clfbev.data import NuScenesDetection
     from clfbev.model import CLFusionBEV
     from clfbev.run.epochs import precise_batchnorm
@@ -300,7 +300,7 @@ def test_bad_input_exits_2(tiny_dataset, micro, tmp_path):
 
 
 def test_non_finite_loss_stops_and_keeps_the_checkpoint(tiny_dataset, micro, tmp_path, monkeypatch):
-    from clfbev.config import load_config
+    from clfbev.config_file import load_config
     from clfbev.errors import TrainError
     from clfbev.run import train as train_module
     from clfbev.run.train import train

@@ -156,7 +156,7 @@ def test_short_training_learns_the_velocity_of_moving_cars(tiny_dataset, micro):
     set (the two with the most moving cars), predicts the velocity at the cars' positive anchors
     with a mean error below half of that of predicting 0 m/s, for all of them and for the moving
     ones alone: it leaves the still majority's 0. (80 steps, about 1 s each on the 2 cores.)"""
-    from clfbev.config import load_config
+    from clfbev.config_file import load_config
     from clfbev.data import collate
     from clfbev.model import CLFusionBEV
     from clfbev.supervision.targets import batch_loss, build_targets
