@@ -156,20 +156,21 @@ def test_detached_velocity_tower_sends_no_gradient_into_the_bev():
                           velocity_detach=True)
     detached.load_state_dict(attached.state_dict())
     motion = torch.randn(2, 5, 6, 7)
-    grads = {}
+    bev_grad, tower_grad, values = {}, {}, {}
     for name, head in (("attached", attached), ("detached", detached)):
         bev = torch.randn(2, 16, 6, 7, generator=torch.Generator().manual_seed(1)).requires_grad_()
         box = head(bev, motion).box_deltas.view(2, 6, 9, 6, 7)
-        box[:, :, 7:].sum().backward(retain_graph=True)
-        grads[name] = (bev.grad.clone(), [p.grad.abs().sum() for p in head.velocity.parameters()])
+        box[:, :, 7:].sum().backward(retain_graph=True)       # the velocity residuals alone
+        bev_grad[name] = bev.grad.clone()
+        tower_grad[name] = [p.grad.abs().sum() for p in head.velocity.parameters()]
         bev.grad = None
-        box[:, :, :7].sum().backward()
+        box[:, :, :7].sum().backward()                        # the box residuals alone
         assert bev.grad.abs().sum() > 0
-        grads[name + "_values"] = box.detach()
-    assert grads["attached"][0].abs().sum() > 0
-    assert not grads["detached"][0].any()
-    assert all(g > 0 for g in grads["detached"][1])
-    assert torch.equal(grads["attached_values"], grads["detached_values"])
+        values[name] = box.detach()
+    assert bev_grad["attached"].abs().sum() > 0
+    assert not bev_grad["detached"].any()
+    assert all(g > 0 for g in tower_grad["detached"])
+    assert torch.equal(values["attached"], values["detached"])
 
 
 def test_gt_on_anchor_is_positive_with_zero_residuals_class_aware():
