@@ -38,7 +38,8 @@ class ModelConfig:
     ``sparse_channels`` (one entry per sparse stage; each stage after the first halves z),
     ``lidar_bev_stride`` (the x/y stride of the lidar BEV over the voxels: the first
     log2(stride) downsamplings also halve x and y), ``sparse_blocks``, ``sweep_bands`` (lag
-    bands whose point counts per BEV cell join the lidar BEV, :mod:`clfbev.sweep_bev`; 0: none).
+    bands whose point counts per BEV cell join the lidar BEV, :mod:`clfbev.sweep_bev`; 0: none),
+    ``sweep_offsets`` (each band's mean offset in its cell joins them too: a walker's sub-cell trail).
     Camera: ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``, ``context_ch``, ``depth_bins``
     (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``,
     ``cam_semantic_lift`` (lift the perspective head's class probabilities with the context, so
@@ -75,6 +76,7 @@ class ModelConfig:
     lidar_bev_stride: int = 2
     sparse_blocks: int = 1
     sweep_bands: int = 0
+    sweep_offsets: bool = False
     # camera
     cam_depth: int = 18
     cam_width: int = 16
@@ -142,6 +144,8 @@ class ModelConfig:
             raise ConfigError(f"fusion_dim {self.fusion_dim} must be divisible by attn_heads {self.attn_heads} and 4")
         if self.feature_stride not in (8, 16) or any(s % self.feature_stride for s in self.image_size):
             raise ConfigError(f"image_size {self.image_size} must be a multiple of feature_stride (8 or 16)")
+        if self.sweep_offsets and not self.sweep_bands > 0:
+            raise ConfigError("sweep_offsets needs sweep_bands > 0 (the offsets are the bands')")
         if self.cam_semantic_lift and not self.loss.semantic > 0:
             raise ConfigError("cam_semantic_lift needs the perspective head: set loss.semantic > 0")
         if len(self.loss.code_weights) < self.code_size:
@@ -181,7 +185,12 @@ class ModelConfig:
     @property
     def lidar_bev_channels(self) -> int:
         """Lidar BEV channels: last sparse stage channels x remaining z cells, and the sweep bands."""
-        return self.sparse_channels[-1] * self._sparse_grid[0] + self.sweep_bands
+        return self.sparse_channels[-1] * self._sparse_grid[0] + self.sweep_channels
+
+    @property
+    def sweep_channels(self) -> int:
+        """The sweep bands' channels: a count per band, and its x and y offsets with ``sweep_offsets``."""
+        return self.sweep_bands * (3 if self.sweep_offsets else 1)
 
     @property
     def cam_bev_voxel(self) -> tuple[float, float, float]:

@@ -26,7 +26,7 @@ from clfbev.layers import BN_EPS, BN_MOMENTUM
 from clfbev.ops.sparse_conv import SparseConv3d, SparseTensor, SubMConv3d, subm_rulebook
 from clfbev.ops.voxelize import voxelize
 from clfbev.settings import conv_out_size, grid_shape_of
-from clfbev.sweep_bev import sweep_occupancy
+from clfbev.sweep_bev import sweep_occupancy, sweep_offsets
 
 Triple = tuple[int, int, int]
 
@@ -36,7 +36,7 @@ class LidarFeatures(NamedTuple):
 
     bev : (B, out_channels, ny, nx) the lidar BEV: the sparse encoder's channels, then the sweep
         bands (if any).
-    motion : (B, sweep_bands, ny, nx) the sweep bands (:mod:`clfbev.sweep_bev`), which the
+    motion : (B, sweep_channels, ny, nx) the sweep bands (:mod:`clfbev.sweep_bev`), which the
         velocity tower reads beside the backbone's features; None without sweep bands.
     """
 
@@ -272,8 +272,9 @@ def _block(conv: nn.Module, norm: nn.Module, x: SparseTensor, rulebook=None) -> 
 
 class LidarEncoder(nn.Module):
     """Points (lidar frame) -> lidar BEV: ``voxelize`` -> ``VFE`` -> ``SparseEncoder``, and with
-    ``sweep_bands`` the per-band point counts of :func:`clfbev.sweep_bev.sweep_occupancy` as
-    further channels.
+    ``sweep_bands`` the per-band point counts of :func:`clfbev.sweep_bev.sweep_occupancy` (and
+    with ``sweep_offsets`` their mean offsets in the cell, :func:`clfbev.sweep_bev.sweep_offsets`)
+    as further channels.
 
     Parameters
     ----------
@@ -286,6 +287,7 @@ class LidarEncoder(nn.Module):
     blocks_per_stage, z_out_conv, xy_stride : see ``SparseEncoder``.
     vfe_norm, time_lag_span : see ``VFE``.
     sweep_bands : lag bands counted per BEV cell (0: none).
+    sweep_offsets : the bands' mean offsets in their cells follow the counts (2 channels a band).
     """
 
     def __init__(
@@ -302,10 +304,12 @@ class LidarEncoder(nn.Module):
         xy_stride: int | None = None,
         time_lag_span: float = 1.0,
         sweep_bands: int = 0,
+        sweep_offsets: bool = False,
     ) -> None:
         super().__init__()
         self.point_ch = point_ch
-        self.time_lag_span, self.sweep_bands = time_lag_span, sweep_bands
+        self.time_lag_span, self.sweep_bands, self.sweep_offsets = time_lag_span, sweep_bands, sweep_offsets
+        self.sweep_channels = sweep_bands * (3 if sweep_offsets else 1)
         self.pc_range, self.voxel_size = tuple(pc_range), tuple(voxel_size)
         self.max_voxels = max_voxels
         self.grid_shape = grid_shape_of(self.pc_range, self.voxel_size)  # (nz, ny, nx)
@@ -314,7 +318,7 @@ class LidarEncoder(nn.Module):
 
     @property
     def out_channels(self) -> int:
-        return self.sparse.out_channels + self.sweep_bands
+        return self.sparse.out_channels + self.sweep_channels
 
     @property
     def out_size(self) -> tuple[int, int]:
@@ -373,11 +377,14 @@ class LidarEncoder(nn.Module):
             # No point in range anywhere in the batch: the BEV is empty (BatchNorm cannot run on
             # zero rows in training mode, so short-cut it).
             bev = points.new_zeros((batch_size, self.out_channels, ny, nx))
-            return LidarFeatures(bev, bev[:, self.sparse.out_channels:] if self.sweep_bands else None)
+            return LidarFeatures(bev, bev[:, self.sparse.out_channels:] if self.sweep_channels else None)
         feats = self.vfe(points[vox.point_index], vox.voxel_id, vox.num_points, vox.coords)  # (V, vfe_ch)
         bev = self.sparse(SparseTensor(feats, vox.coords, vox.grid_shape, batch_size))
         if not self.sweep_bands:
             return LidarFeatures(bev, None)
-        bands = sweep_occupancy(points, batch_idx, batch_size, self.pc_range, (ny, nx), self.sweep_bands,
-                                self.time_lag_span).to(bev.dtype)
+        grid = (points, batch_idx, batch_size, self.pc_range, (ny, nx), self.sweep_bands, self.time_lag_span)
+        bands = sweep_occupancy(*grid)
+        if self.sweep_offsets:
+            bands = torch.cat([bands, sweep_offsets(*grid)], dim=1)
+        bands = bands.to(bev.dtype)
         return LidarFeatures(torch.cat([bev, bands], dim=1), bands)

@@ -52,7 +52,7 @@ class Encoded(NamedTuple):
     bev : (B, cfg.bev_channels_of(variant), ny, nx) the backbone's input, lidar frame.
     depth : (B, N, D, h, w) the camera's depth distribution, None without a camera.
     semantics : (B, N, n_classes, h, w) the perspective head's logits, None without one.
-    motion : (B, sweep_bands, ny, nx) the lidar's motion features for the velocity tower, None
+    motion : (B, sweep_channels, ny, nx) the lidar's motion features for the velocity tower, None
         without a tower (or without sweep bands).
     attention : the attention modules' inputs.
     """
@@ -133,6 +133,7 @@ class CLFusionBEV(nn.Module):
                 cfg.point_ch, cfg.vfe_ch, cfg.sparse_channels, cfg.pc_range, cfg.voxel_size,
                 cfg.max_voxels, cfg.sparse_blocks, xy_stride=cfg.lidar_bev_stride,
                 time_lag_span=cfg.time_lag_span, sweep_bands=cfg.sweep_bands,
+                sweep_offsets=cfg.sweep_offsets,
             )
         if uses_camera:
             self.camera_encoder = CameraEncoder(
@@ -159,7 +160,7 @@ class CLFusionBEV(nn.Module):
 
         # BEV backbone and head; the velocity tower also reads the lidar's motion features.
         self.backbone = BEVBackbone(cfg.bev_channels_of(variant), cfg.bev_channels, cfg.bev_blocks, cfg.bev_up_ch)
-        self.motion_ch = cfg.sweep_bands if uses_lidar and cfg.velocity_tower else 0
+        self.motion_ch = cfg.sweep_channels if uses_lidar and cfg.velocity_tower else 0
         self.head = AnchorHead(self.backbone.out_channels, len(cfg.class_names), len(cfg.anchor_rotations),
                                cfg.code_size, cfg.n_dir_bins, cfg.prior_prob, cfg.velocity_tower, self.motion_ch,
                                cfg.velocity_detach)
@@ -180,7 +181,7 @@ class CLFusionBEV(nn.Module):
         if self.lidar_encoder is not None:
             lidar = self.lidar_encoder.encode(batch.points)                   # (B, Cl, ny, nx)
             if self.motion_ch:
-                motion = lidar.motion                                         # (B, sweep_bands, ny, nx)
+                motion = lidar.motion                                      # (B, sweep_channels, ny, nx)
         if self.camera_encoder is not None:
             cam_bev, depth, semantics = self.camera_encoder.lift_splat(batch.images, batch.intrinsics,
                                                                        batch.T_lidar_from_cam, batch.img_aug)

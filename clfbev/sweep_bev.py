@@ -7,11 +7,30 @@ the BEV only weakly. Counting each lag band's points per cell hands the 2D backb
 itself, so that its 3x3 convolutions can compare where the old and the new points are: the
 "early fusion" of Luo et al., *Fast and Furious* (CVPR 2018), which stacks the sweeps'
 occupancy along the channels of the BEV.
+
+A walker's trail is shorter than a cell (1.2 m/s over the 0.45 s of 10 sweeps: 0.55 m, against
+0.8 m cells), so the counts hardly move; :func:`sweep_offsets` adds where in its cell each band's
+points lie on average (as PointPillars gives each point its offset from the pillar's centre),
+and the newest band's mean then sits ahead of the oldest's by the trail.
 """
 from __future__ import annotations
 
 import torch
 from torch import Tensor
+
+
+def _cell_and_band(points, batch_idx, pc_range, bev_shape, n_bands, time_lag_span):
+    """Per point: the flat (sample, band, iy, ix) index, the in-range mask and the offsets (dx,
+    dy) from its cell's centre in cells (-0.5 to 0.5)."""
+    ny, nx = bev_shape
+    xmin, ymin, zmin, xmax, ymax, zmax = pc_range
+    x, y, z, lag = points[:, 0], points[:, 1], points[:, 2], points[:, 4]
+    inside = (x >= xmin) & (x < xmax) & (y >= ymin) & (y < ymax) & (z >= zmin) & (z < zmax)
+    fx, fy = (x - xmin) * (nx / (xmax - xmin)), (y - ymin) * (ny / (ymax - ymin))
+    ix, iy = fx.long().clamp_(0, nx - 1), fy.long().clamp_(0, ny - 1)
+    band = (lag * (n_bands / time_lag_span)).long().clamp_(0, n_bands - 1)
+    cell = ((batch_idx * n_bands + band) * ny + iy) * nx + ix
+    return cell, inside, fx - ix - 0.5, fy - iy - 0.5
 
 
 def sweep_occupancy(
@@ -42,12 +61,33 @@ def sweep_occupancy(
     (B, K, ny, nx), the lidar frame's BEV (row = y, column = x), as the lidar BEV.
     """
     ny, nx = bev_shape
-    xmin, ymin, zmin, xmax, ymax, zmax = pc_range
-    x, y, z, lag = points[:, 0], points[:, 1], points[:, 2], points[:, 4]
-    inside = (x >= xmin) & (x < xmax) & (y >= ymin) & (y < ymax) & (z >= zmin) & (z < zmax)
-    ix = ((x - xmin) * (nx / (xmax - xmin))).long().clamp_(0, nx - 1)
-    iy = ((y - ymin) * (ny / (ymax - ymin))).long().clamp_(0, ny - 1)
-    band = (lag * (n_bands / time_lag_span)).long().clamp_(0, n_bands - 1)
-    cell = ((batch_idx * n_bands + band) * ny + iy) * nx + ix
+    cell, inside, _, _ = _cell_and_band(points, batch_idx, pc_range, bev_shape, n_bands, time_lag_span)
     counts = torch.bincount(cell[inside], minlength=batch_size * n_bands * ny * nx)
     return torch.log1p(counts.to(points.dtype)).view(batch_size, n_bands, ny, nx)
+
+
+def sweep_offsets(
+    points: Tensor,
+    batch_idx: Tensor,
+    batch_size: int,
+    pc_range: tuple[float, ...],
+    bev_shape: tuple[int, int],
+    n_bands: int,
+    time_lag_span: float,
+) -> Tensor:
+    """The mean offset of each lag band's points from the centre of their BEV cell.
+
+    Parameters are those of :func:`sweep_occupancy`.
+
+    Returns
+    -------
+    (B, 2K, ny, nx): channels 2k and 2k + 1 are band k's mean x and y offsets in cells (-0.5 to
+    0.5; 0 where the band has no point in the cell).
+    """
+    ny, nx = bev_shape
+    cell, inside, dx, dy = _cell_and_band(points, batch_idx, pc_range, bev_shape, n_bands, time_lag_span)
+    cell, size = cell[inside], batch_size * n_bands * ny * nx
+    counts = torch.bincount(cell, minlength=size).to(points.dtype).clamp_(min=1)
+    mean = [(torch.bincount(cell, weights=d[inside], minlength=size).to(points.dtype) / counts)
+            .view(batch_size, n_bands, ny, nx) for d in (dx, dy)]
+    return torch.stack(mean, dim=2).flatten(1, 2)

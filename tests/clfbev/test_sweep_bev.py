@@ -1,12 +1,12 @@
-"""The sweep bands: each point counted once, in its own cell and lag band, and the lidar BEV
-carries them as its last channels."""
+"""The sweep bands: each point counted once, in its own cell and lag band, each band's mean offset
+in its cell, and the lidar BEV carries them as its last channels."""
 import math
 
 import pytest
 import torch
 
 from clfbev.lidar_encoder import LidarEncoder
-from clfbev.sweep_bev import sweep_occupancy
+from clfbev.sweep_bev import sweep_occupancy, sweep_offsets
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -35,6 +35,37 @@ def test_points_land_in_their_cell_and_band():
     torch.testing.assert_close(bev, expected)
 
 
+def test_offsets_are_each_bands_mean_position_in_its_cell():
+    # Cell (iy 4, ix 4) spans x and y 0 to 1.6 m, centre 0.8: offsets in cells of 1.6 m.
+    pts = torch.tensor([
+        [0.1, 0.1, 0.0, 0.0, 0.00],    # band 0
+        [0.5, 0.3, 0.5, 0.0, 0.05],    # band 0: mean (0.3, 0.2)
+        [1.5, 1.2, 0.5, 0.0, 0.40],    # band 4
+        [6.5, 0.0, 0.0, 0.0, 0.00],    # outside x: nowhere
+        [-6.3, 6.3, 0.0, 0.0, 0.20],   # the second sample: corner cell (7, 0), band 2
+    ])
+    off = sweep_offsets(pts, torch.tensor([0, 0, 0, 0, 1]), 2, RANGE, (8, 8), 5, 0.45)
+    expected = torch.zeros(2, 10, 8, 8)
+    expected[0, 0:2, 4, 4] = torch.tensor([(0.3 - 0.8) / 1.6, (0.2 - 0.8) / 1.6])
+    expected[0, 8:10, 4, 4] = torch.tensor([(1.5 - 0.8) / 1.6, (1.2 - 0.8) / 1.6])
+    expected[1, 4:6, 7, 0] = torch.tensor([(-6.3 + 6.4) / 1.6 - 0.5, (6.3 - 4.8) / 1.6 - 0.5])
+    torch.testing.assert_close(off, expected)
+
+
+def test_a_walkers_trail_inside_one_cell_shows_in_the_offsets_not_the_counts():
+    """1.2 m/s along x over 10 sweeps: the counts of every band sit in the same cell, the newest
+    band's mean x lies ahead of the oldest's by the trail."""
+    lag = torch.arange(10).repeat_interleave(20) * 0.05
+    x = 0.3 + 1.2 * (0.45 - lag) + 0.05 * torch.randn(200, generator=torch.Generator().manual_seed(0))
+    pts = torch.stack([x, torch.full_like(x, 0.8), torch.zeros_like(x), torch.zeros_like(x), lag], dim=1)
+    batch = torch.zeros(200, dtype=torch.long)
+    counts = sweep_occupancy(pts, batch, 1, RANGE, (8, 8), 5, 0.45)
+    assert (counts[0, :, 4, 4] == math.log(41.0)).all() and counts.count_nonzero() == 5
+    off = sweep_offsets(pts, batch, 1, RANGE, (8, 8), 5, 0.45)
+    trail_m = (off[0, 0, 4, 4] - off[0, 8, 4, 4]) * 1.6
+    assert abs(trail_m - 1.2 * 0.4) < 0.03     # band 0 (lags 0, 0.05) to band 4 (0.4, 0.45)
+
+
 def test_lidar_bev_ends_with_the_bands():
     g = torch.Generator().manual_seed(0)
     lo, hi = torch.tensor(RANGE[:3]), torch.tensor(RANGE[3:])
@@ -60,3 +91,19 @@ def test_lidar_bev_ends_with_the_bands():
     with torch.no_grad():
         empty = enc.encode([pts[:0]])                   # no point: an empty BEV, empty motion features
     assert empty.motion.shape == (1, 5, ny, nx) and not empty.bev.any()
+
+
+def test_lidar_bev_with_offsets_ends_with_the_counts_then_the_offsets():
+    g = torch.Generator().manual_seed(1)
+    lo, hi = torch.tensor(RANGE[:3]), torch.tensor(RANGE[3:])
+    pts = torch.cat([lo + (hi - lo) * torch.rand(500, 3, generator=g), torch.rand(500, 1, generator=g),
+                     torch.randint(0, 10, (500, 1), generator=g) * 0.05], dim=1)
+    enc = LidarEncoder(5, 16, (8, 16, 16), RANGE, (0.4, 0.4, 0.4), 100000, time_lag_span=0.45,
+                       sweep_bands=5, sweep_offsets=True).eval()
+    with torch.no_grad():
+        feats = enc.encode([pts])
+    ny, nx = enc.out_size
+    grid = (pts, torch.zeros(500, dtype=torch.long), 1, RANGE, (ny, nx), 5, 0.45)
+    assert enc.out_channels == enc.sparse.out_channels + 15 == feats.bev.shape[1]
+    torch.testing.assert_close(feats.motion, torch.cat([sweep_occupancy(*grid), sweep_offsets(*grid)], dim=1))
+    assert torch.equal(feats.bev[:, -15:], feats.motion)
