@@ -26,7 +26,7 @@ from clfbev.layers import BN_EPS, BN_MOMENTUM
 from clfbev.ops.sparse_conv import SparseConv3d, SparseTensor, SubMConv3d, subm_rulebook
 from clfbev.ops.voxelize import voxelize
 from clfbev.settings import conv_out_size, grid_shape_of
-from clfbev.sweep_bev import sweep_occupancy, sweep_offsets
+from clfbev.sweep_bev import sweep_occupancy
 
 Triple = tuple[int, int, int]
 
@@ -273,8 +273,7 @@ def _block(conv: nn.Module, norm: nn.Module, x: SparseTensor, rulebook=None) -> 
 class LidarEncoder(nn.Module):
     """Points (lidar frame) -> lidar BEV: ``voxelize`` -> ``VFE`` -> ``SparseEncoder``, and with
     ``sweep_bands`` the per-band point counts of :func:`clfbev.sweep_bev.sweep_occupancy` (and
-    with ``sweep_offsets`` their mean offsets in the cell, :func:`clfbev.sweep_bev.sweep_offsets`)
-    as further channels.
+    with ``sweep_offsets`` their mean offsets in the cell) as further channels.
 
     Parameters
     ----------
@@ -382,9 +381,6 @@ class LidarEncoder(nn.Module):
         bev = self.sparse(SparseTensor(feats, vox.coords, vox.grid_shape, batch_size))
         if not self.sweep_bands:
             return LidarFeatures(bev, None)
-        grid = (points, batch_idx, batch_size, self.pc_range, (ny, nx), self.sweep_bands, self.time_lag_span)
-        bands = sweep_occupancy(*grid)
-        if self.sweep_offsets:
-            bands = torch.cat([bands, sweep_offsets(*grid)], dim=1)
-        bands = bands.to(bev.dtype)
+        bands = sweep_occupancy(points, batch_idx, batch_size, self.pc_range, (ny, nx), self.sweep_bands,
+                                self.time_lag_span, self.sweep_offsets).to(bev.dtype)
         return LidarFeatures(torch.cat([bev, bands], dim=1), bands)

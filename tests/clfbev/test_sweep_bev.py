@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from clfbev.lidar_encoder import LidarEncoder
-from clfbev.sweep_bev import sweep_occupancy, sweep_offsets
+from clfbev.sweep_bev import sweep_occupancy
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -44,12 +44,15 @@ def test_offsets_are_each_bands_mean_position_in_its_cell():
         [6.5, 0.0, 0.0, 0.0, 0.00],    # outside x: nowhere
         [-6.3, 6.3, 0.0, 0.0, 0.20],   # the second sample: corner cell (7, 0), band 2
     ])
-    off = sweep_offsets(pts, torch.tensor([0, 0, 0, 0, 1]), 2, RANGE, (8, 8), 5, 0.45)
+    batch = torch.tensor([0, 0, 0, 0, 1])
+    both = sweep_occupancy(pts, batch, 2, RANGE, (8, 8), 5, 0.45, offsets=True)
+    off = both[:, 5:]
     expected = torch.zeros(2, 10, 8, 8)
     expected[0, 0:2, 4, 4] = torch.tensor([(0.3 - 0.8) / 1.6, (0.2 - 0.8) / 1.6])
     expected[0, 8:10, 4, 4] = torch.tensor([(1.5 - 0.8) / 1.6, (1.2 - 0.8) / 1.6])
     expected[1, 4:6, 7, 0] = torch.tensor([(-6.3 + 6.4) / 1.6 - 0.5, (6.3 - 4.8) / 1.6 - 0.5])
     torch.testing.assert_close(off, expected)
+    torch.testing.assert_close(both[:, :5], sweep_occupancy(pts, batch, 2, RANGE, (8, 8), 5, 0.45))
 
 
 def test_a_walkers_trail_inside_one_cell_shows_in_the_offsets_not_the_counts():
@@ -61,7 +64,7 @@ def test_a_walkers_trail_inside_one_cell_shows_in_the_offsets_not_the_counts():
     batch = torch.zeros(200, dtype=torch.long)
     counts = sweep_occupancy(pts, batch, 1, RANGE, (8, 8), 5, 0.45)
     assert (counts[0, :, 4, 4] == math.log(41.0)).all() and counts.count_nonzero() == 5
-    off = sweep_offsets(pts, batch, 1, RANGE, (8, 8), 5, 0.45)
+    off = sweep_occupancy(pts, batch, 1, RANGE, (8, 8), 5, 0.45, offsets=True)[:, 5:]
     trail_m = (off[0, 0, 4, 4] - off[0, 8, 4, 4]) * 1.6
     assert abs(trail_m - 1.2 * 0.4) < 0.03     # band 0 (lags 0, 0.05) to band 4 (0.4, 0.45)
 
@@ -105,5 +108,6 @@ def test_lidar_bev_with_offsets_ends_with_the_counts_then_the_offsets():
     ny, nx = enc.out_size
     grid = (pts, torch.zeros(500, dtype=torch.long), 1, RANGE, (ny, nx), 5, 0.45)
     assert enc.out_channels == enc.sparse.out_channels + 15 == feats.bev.shape[1]
-    torch.testing.assert_close(feats.motion, torch.cat([sweep_occupancy(*grid), sweep_offsets(*grid)], dim=1))
+    torch.testing.assert_close(feats.motion[:, :5], sweep_occupancy(*grid))
+    torch.testing.assert_close(feats.motion, sweep_occupancy(*grid, offsets=True))
     assert torch.equal(feats.bev[:, -15:], feats.motion)
