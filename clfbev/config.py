@@ -53,6 +53,9 @@ class ModelConfig:
     ``velocity_tower`` (0: the velocity is two of the head's 1x1 residuals; else the width of
     the :class:`clfbev.head.VelocityTower` that predicts it from the BEV and the sweep bands),
     ``velocity_detach`` (the tower's gradient stops at the shared BEV features),
+    ``velocity_gate`` (the tower also classifies each box as moving or still; the speed is
+    regressed on the moving boxes only and decoded only where the gate fires,
+    :func:`clfbev.supervision.losses.gated_velocity_loss`; needs ``velocity_tower``),
     ``heading_from_motion`` (m/s, >= 0: decoding turns a box's yaw by pi where it points against
     its predicted velocity and the predicted speed is above this; 0: off), ``score_thr``,
     ``nms_iou``, ``max_per_sample``, ``pre_nms``.
@@ -105,6 +108,7 @@ class ModelConfig:
     prior_prob: float = 0.01
     velocity_tower: int = 0
     velocity_detach: bool = False
+    velocity_gate: bool = False
     heading_from_motion: float = 0.0
     score_thr: float = 0.1
     nms_iou: float = 0.2
@@ -136,6 +140,8 @@ class ModelConfig:
         for name, value in non_negative.items():
             if not value >= 0:
                 raise ConfigError(f"{name} must be >= 0, got {value}")
+        if self.velocity_gate and not self.velocity_tower:
+            raise ConfigError("velocity_gate needs velocity_tower > 0")
         if not 1 <= self.min_positives <= 4:
             raise ConfigError(f"min_positives must be in [1, 4], got {self.min_positives}")
         if self.attn_mode not in ATTENTION_MODES:

@@ -52,11 +52,13 @@ class FlatPredictions:
     cls_logits : (B, N) one logit per anchor (its own class).
     box_deltas : (B, N, code_size) residuals.
     dir_logits : (B, N, n_dir_bins).
+    moving_logits : (B, N) the velocity gate's logit (the box moves), or None without a gate.
     """
 
     cls_logits: Tensor
     box_deltas: Tensor
     dir_logits: Tensor
+    moving_logits: Tensor | None = None
 
 
 def _flatten_map(x: Tensor, n_anchors: int) -> Tensor:
@@ -73,11 +75,13 @@ class HeadOutput:
     cls_logits : (B, A, H, W), ``A = n_cls * n_rot``.
     box_deltas : (B, A * code_size, H, W).
     dir_logits : (B, A * n_dir_bins, H, W).
+    moving_logits : (B, A, H, W) the velocity gate's logits, or None without a gate.
     """
 
     cls_logits: Tensor
     box_deltas: Tensor
     dir_logits: Tensor
+    moving_logits: Tensor | None = None
 
     def flatten(self) -> FlatPredictions:
         n_anchors = self.cls_logits.shape[1]
@@ -85,6 +89,7 @@ class HeadOutput:
             cls_logits=_flatten_map(self.cls_logits, n_anchors)[..., 0],
             box_deltas=_flatten_map(self.box_deltas, n_anchors),
             dir_logits=_flatten_map(self.dir_logits, n_anchors),
+            moving_logits=None if self.moving_logits is None else _flatten_map(self.moving_logits, n_anchors)[..., 0],
         )
 
 
@@ -106,29 +111,38 @@ class VelocityTower(nn.Module):
     scales: 3x3 convolutions of this width on the full grid cost a fifth of a training step,
     these 8%; the full-resolution skip keeps a pedestrian's velocity its own beside a car's.
 
+    With ``gate`` it also gives each anchor a moving logit: whether the box moves at all (faster
+    than :data:`clfbev.supervision.losses.MOVING_SPEED`), a classification that the still
+    majority cannot shrink, while the speed is regressed on the moving boxes alone
+    (:func:`clfbev.supervision.losses.gated_velocity_loss`); decoding keeps the regressed
+    velocity only where the gate fires.
+
     Parameters
     ----------
     in_ch : channels of the backbone output plus the motion channels.
     n_anchors : anchors per cell.
     channels : width of the convolutions.
+    gate : also predict the moving logit.
     """
 
     DILATIONS = (1, 2, 4)
 
-    def __init__(self, in_ch: int, n_anchors: int, channels: int) -> None:
+    def __init__(self, in_ch: int, n_anchors: int, channels: int, gate: bool = False) -> None:
         super().__init__()
+        self.outputs = 3 if gate else 2
         self.reduce = nn.Sequential(nn.Conv2d(in_ch, channels, 1, bias=False),
                                     nn.BatchNorm2d(channels, eps=BN_EPS, momentum=BN_MOMENTUM), nn.ReLU(inplace=True))
         layers = conv_bn_relu(channels, channels, stride=2)
         for d in self.DILATIONS:
             layers += conv_bn_relu(channels, channels, dilation=d)
         self.coarse = nn.Sequential(*layers)
-        self.out = nn.Conv2d(2 * channels, n_anchors * 2, 1)
+        self.out = nn.Conv2d(2 * channels, n_anchors * self.outputs, 1)
         nn.init.normal_(self.out.weight, std=0.01)   # starts at 0 m/s, like the head's residuals
         nn.init.zeros_(self.out.bias)
 
     def forward(self, x: Tensor) -> Tensor:
-        """x (B, in_ch, H, W) -> (B, n_anchors * 2, H, W), anchor-major ``(vx, vy)``."""
+        """x (B, in_ch, H, W) -> (B, n_anchors * k, H, W), anchor-major ``(vx, vy)`` or, with the
+        gate, ``(vx, vy, moving logit)``."""
         fine = self.reduce(x)
         coarse = F.interpolate(self.coarse(fine), size=fine.shape[-2:], mode="nearest")
         return self.out(torch.cat([fine, coarse], dim=1))
@@ -152,6 +166,7 @@ class AnchorHead(nn.Module):
     motion_ch : channels given to the tower beside the BEV features (the sweep bands).
     velocity_detach : the tower reads the BEV features without sending its gradient back into
         them, so the velocity loss cannot reshape the features the boxes are read from.
+    velocity_gate : the tower also predicts whether each box moves (:class:`VelocityTower`).
     """
 
     def __init__(
@@ -165,17 +180,21 @@ class AnchorHead(nn.Module):
         velocity_tower: int = 0,
         motion_ch: int = 0,
         velocity_detach: bool = False,
+        velocity_gate: bool = False,
     ) -> None:
         super().__init__()
         if velocity_tower and code_size != 9:
             raise ValueError(f"a velocity tower needs code_size 9 (7 + vx, vy), got {code_size}")
+        if velocity_gate and not velocity_tower:
+            raise ValueError("a velocity gate needs a velocity tower")
         self.n_classes, self.n_rot = n_classes, n_rot
         self.code_size, self.n_dir_bins = code_size, n_dir_bins
         n_anchors = n_classes * n_rot
         self.conv_cls = nn.Conv2d(in_ch, n_anchors, 1)
         self.conv_box = nn.Conv2d(in_ch, n_anchors * (7 if velocity_tower else code_size), 1)
         self.conv_dir = nn.Conv2d(in_ch, n_anchors * n_dir_bins, 1)
-        self.velocity = VelocityTower(in_ch + motion_ch, n_anchors, velocity_tower) if velocity_tower else None
+        self.velocity = (VelocityTower(in_ch + motion_ch, n_anchors, velocity_tower, velocity_gate)
+                         if velocity_tower else None)
         self.velocity_detach = velocity_detach
         # Small weights: the first residuals are ~0 (boxes start at the anchors) and the first
         # scores ~prior_prob everywhere.
@@ -187,14 +206,17 @@ class AnchorHead(nn.Module):
     def forward(self, bev: Tensor, motion: Tensor | None = None) -> HeadOutput:
         """bev (B, in_ch, H, W), motion (B, motion_ch, H, W) or None -> HeadOutput on the same grid."""
         box = self.conv_box(bev)
+        moving = None
         if self.velocity is not None:
             shared = bev.detach() if self.velocity_detach else bev
             tower_in = shared if motion is None else torch.cat([shared, motion], dim=1)
             b, _, h, w = box.shape
             n_anchors = self.n_classes * self.n_rot
-            vel = self.velocity(tower_in).view(b, n_anchors, 2, h, w)
-            box = torch.cat([box.view(b, n_anchors, 7, h, w), vel], dim=2).view(b, n_anchors * 9, h, w)
-        return HeadOutput(self.conv_cls(bev), box, self.conv_dir(bev))
+            tower = self.velocity(tower_in).view(b, n_anchors, self.velocity.outputs, h, w)
+            box = torch.cat([box.view(b, n_anchors, 7, h, w), tower[:, :, :2]], dim=2).view(b, n_anchors * 9, h, w)
+            if self.velocity.outputs == 3:
+                moving = tower[:, :, 2]
+        return HeadOutput(self.conv_cls(bev), box, self.conv_dir(bev), moving)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -256,6 +278,7 @@ def decode(
     pre_nms: int = 1000,
     dir_offset: float = DIR_OFFSET,
     heading_speed: float = 0.0,
+    moving_logits: Tensor | None = None,
 ) -> list[Detections]:
     """Head maps -> boxes in the lidar frame, per sample.
 
@@ -274,12 +297,14 @@ def decode(
     dir_offset : start of the direction bins, as in training.
     heading_speed : m/s; above it a box's heading follows its predicted velocity
         (:func:`heading_from_motion`); 0: off.
+    moving_logits : (B, A, H, W) the velocity gate's logits, or None: where given, a box whose
+        gate says still (logit < 0) gets velocity 0, whatever was regressed.
 
     Returns
     -------
     B Detections.
     """
-    flat = HeadOutput(cls_logits, box_deltas, dir_logits).flatten()
+    flat = HeadOutput(cls_logits, box_deltas, dir_logits, moving_logits).flatten()
     flat_anchors = anchors.reshape(-1, 7).to(box_deltas.dtype)
     class_ids = anchor_class_ids(anchors)
     n_bins = flat.dir_logits.shape[-1]
@@ -292,6 +317,8 @@ def decode(
 
         deltas = flat.box_deltas[b, top].clone()
         deltas[:, 3:6] = deltas[:, 3:6].clamp(max=_MAX_LOG_SIZE)
+        if flat.moving_logits is not None:
+            deltas[:, 7:9] *= (flat.moving_logits[b, top] >= 0).to(deltas.dtype)[:, None]
         boxes = decode_boxes(deltas, flat_anchors[top])
         dir_bin = flat.dir_logits[b, top].argmax(dim=-1)
         boxes[:, 6] = correct_direction(boxes[:, 6], dir_bin, dir_offset, n_bins)

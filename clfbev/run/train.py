@@ -51,7 +51,7 @@ from clfbev.run.run_log import ScalarLog, code_version, write_run_json
 from clfbev.run.train_config import TrainConfig, check_resumable
 from clfbev.supervision.targets import Targets, TrainingCollate, training_loss
 
-LOSS_KEYS = ("loss", "loss_cls", "loss_reg", "loss_vel", "loss_dir", "loss_depth")
+LOSS_KEYS = ("loss", "loss_cls", "loss_reg", "loss_vel", "loss_moving", "loss_dir", "loss_depth")
 
 
 def lr_at(step: int, total: int, tc: TrainConfig) -> float:

@@ -5,7 +5,9 @@ residuals with the sin-difference angle term, direction cross-entropy.
 anchors and divided by the number of positive anchors in the batch (clamped to >= 1), as in
 SECOND / PointPillars: the loss scale then does not depend on how many anchors the grid has.
 Optionally the velocity residuals get a loss of their own, balanced between moving and still
-positives (:func:`velocity_loss`). An unknown GT velocity has box weight 0 (its targets carry
+positives (:func:`velocity_loss`), or, with the velocity tower's gate, a moving/still
+classification and a speed regressed on the moving positives (:func:`gated_velocity_loss`).
+An unknown GT velocity has box weight 0 (its targets carry
 no loss and no gradient).
 """
 
@@ -101,6 +103,30 @@ def velocity_loss(pred: Tensor, target: Tensor, known: Tensor, beta: float) -> T
     return (per_box * w * known.to(pred.dtype)).sum()
 
 
+def gated_velocity_loss(pred: Tensor, moving_logit: Tensor, target: Tensor, known: Tensor,
+                        beta: float) -> tuple[Tensor, Tensor]:
+    """(velocity loss, gate loss) of P positives, each a mean: the Smooth-L1 of the velocity over
+    the moving positives only (GT faster than :data:`MOVING_SPEED`), and the binary
+    cross-entropy of the moving logit over all positives with a known velocity.
+
+    pred, target : (P, 2) ``vx, vy`` m/s; moving_logit : (P,); known : (P,) bool.
+    beta : Smooth-L1 beta, m/s.
+
+    Why: a regression over moving and still boxes together learns a speed shrunk toward the
+    still majority's 0, and still boxes get a small speed of noise. Here the still ones never
+    reach the regression; they only teach the gate, and decoding keeps the regressed velocity
+    only where the gate fires (:func:`clfbev.head.decode`). The gate's cross-entropy is not
+    rebalanced, so its probability stays calibrated and its 0.5 threshold is the choice that
+    errs less often. Each is 0 (with a gradient path) where it has no box.
+    """
+    moving = known & (target.norm(dim=-1) > MOVING_SPEED)
+    per_box = smooth_l1(pred - target, beta).sum(-1)                              # (P,)
+    loss_vel = (per_box * moving.to(pred.dtype)).sum() / moving.sum().clamp(min=1)
+    bce = F.binary_cross_entropy_with_logits(moving_logit, moving.to(moving_logit.dtype), reduction="none")
+    loss_gate = (bce * known.to(bce.dtype)).sum() / known.sum().clamp(min=1)
+    return loss_vel, loss_gate
+
+
 def detection_loss(
     preds: HeadOutput | FlatPredictions,
     targets: AnchorTargets,
@@ -118,13 +144,16 @@ def detection_loss(
     weights : loss weights.
     velocity_balance : the velocity residuals (7:) leave the Smooth-L1 of the box residuals for
         :func:`velocity_loss` (``velocity_beta``), weighted ``weights.reg * velocity_weight``.
+        Predictions with ``moving_logits`` (the tower's gate) take :func:`gated_velocity_loss`
+        instead, its two terms at the same weight, whatever ``velocity_balance`` says.
 
     Returns
     -------
     dict of 0-d tensors: ``loss`` (eq. 9, differentiable), ``loss_cls``, ``loss_reg``,
     ``loss_reg_theta``, ``loss_dir`` (each already divided by the number of positives, before
-    its l weight), ``loss_vel`` (the velocity residuals' share of ``loss_reg``, for the log)
-    and ``num_pos`` (float, unclamped).
+    its l weight), ``loss_vel`` (the velocity residuals' share of ``loss_reg``, for the log),
+    ``loss_moving`` (the gate's cross-entropy; with a gate only) and ``num_pos`` (float,
+    unclamped).
     """
     flat = preds.flatten() if isinstance(preds, HeadOutput) else preds
     if flat.cls_logits.shape != targets.labels.shape:
@@ -147,8 +176,9 @@ def detection_loss(
     loss_cls = (focal * targets.cls_weights).sum() / norm
 
     pos_index = torch.nonzero(positives.reshape(-1)).flatten()
-    loss_reg, loss_reg_theta, loss_vel = _box_losses(flat, targets, pos_index, norm, weights, velocity_balance,
-                                                     velocity_beta)
+    gated = flat.moving_logits is not None
+    loss_reg, loss_reg_theta, loss_vel, loss_moving = _box_losses(flat, targets, pos_index, norm, weights,
+                                                                  velocity_balance or gated, velocity_beta)
 
     # Direction (eq. 8): only positives have a heading to classify.
     n_bins = flat.dir_logits.shape[-1]
@@ -156,9 +186,9 @@ def detection_loss(
     loss_dir = direction_cross_entropy(dir_logits, targets.dir_targets.reshape(-1)[pos_index]).sum() / norm
 
     total = weights.cls * loss_cls + weights.reg * (loss_reg + loss_reg_theta) + weights.dir * loss_dir
-    if velocity_balance and code_size > 7:
-        total = total + weights.reg * velocity_weight * loss_vel
-    return {
+    if (velocity_balance or gated) and code_size > 7:
+        total = total + weights.reg * velocity_weight * (loss_vel + loss_moving)
+    losses = {
         "loss": total,
         "loss_cls": loss_cls,
         "loss_reg": loss_reg,
@@ -167,15 +197,19 @@ def detection_loss(
         "loss_vel": loss_vel.detach(),
         "num_pos": num_pos.detach(),
     }
+    if gated:
+        losses["loss_moving"] = loss_moving.detach()
+    return losses
 
 
-def _box_losses(flat: FlatPredictions, targets: AnchorTargets, pos_index: Tensor, norm: Tensor,
-                weights: LossWeights, velocity_balance: bool, velocity_beta: float) -> tuple[Tensor, Tensor, Tensor]:
-    """(loss_reg, loss_reg_theta, loss_vel) of the positives ``pos_index`` (eq. 6, 7): Smooth-L1
-    per residual, the angle through sin-difference, each divided by ``norm``. Only positives have
-    a box (their weights are 0 elsewhere), so only their rows are computed: a few hundred of the
-    ~330k anchors of a 128 x 128 grid. With ``velocity_balance`` the velocity is
-    :func:`velocity_loss`'s instead of a share of the Smooth-L1."""
+def _box_losses(flat: FlatPredictions, targets: AnchorTargets, pos_index: Tensor, norm: Tensor, weights: LossWeights,
+                velocity_own: bool, velocity_beta: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(loss_reg, loss_reg_theta, loss_vel, loss_moving) of the positives ``pos_index`` (eq. 6,
+    7): Smooth-L1 per residual, the angle through sin-difference, each divided by ``norm``. Only
+    positives have a box (their weights are 0 elsewhere), so only their rows are computed: a
+    few hundred of the ~330k anchors of a 128 x 128 grid. With ``velocity_own`` the velocity is
+    :func:`gated_velocity_loss`'s where the predictions have a gate, else :func:`velocity_loss`'s,
+    instead of a share of the Smooth-L1; ``loss_moving`` is the gate's (0 without one)."""
     code_size = flat.box_deltas.shape[-1]
     deltas = flat.box_deltas.reshape(-1, code_size).index_select(0, pos_index)
     box_targets = targets.box_targets.reshape(-1, code_size).index_select(0, pos_index)
@@ -184,13 +218,19 @@ def _box_losses(flat: FlatPredictions, targets: AnchorTargets, pos_index: Tensor
     diff = deltas - box_targets
     diff = torch.cat([diff[:, :6], (pred_theta - target_theta)[:, None], diff[:, 7:]], dim=-1)
     code_w = deltas.new_tensor(weights.code_weights[:code_size])
-    if velocity_balance:
+    if velocity_own:
         code_w[7:] = 0.0
     per_code = smooth_l1(diff, weights.smooth_l1_beta) * box_weights * code_w
     loss_reg_theta = per_code[:, 6].sum() / norm
     loss_reg = (per_code.sum() - per_code[:, 6].sum()) / norm
     loss_vel = per_code[:, 7:].sum() / norm
-    if velocity_balance and code_size > 7:
+    loss_moving = deltas.new_zeros(())
+    if velocity_own and code_size > 7:
         known = box_weights[:, 7] > 0
-        loss_vel = velocity_loss(deltas[:, 7:9], box_targets[:, 7:9], known, velocity_beta)
-    return loss_reg, loss_reg_theta, loss_vel
+        if flat.moving_logits is not None:
+            moving_logit = flat.moving_logits.reshape(-1).index_select(0, pos_index)
+            loss_vel, loss_moving = gated_velocity_loss(deltas[:, 7:9], moving_logit, box_targets[:, 7:9], known,
+                                                        velocity_beta)
+        else:
+            loss_vel = velocity_loss(deltas[:, 7:9], box_targets[:, 7:9], known, velocity_beta)
+    return loss_reg, loss_reg_theta, loss_vel, loss_moving

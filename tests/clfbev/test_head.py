@@ -146,6 +146,24 @@ def test_velocity_tower_owns_the_velocity_residuals_only():
         AnchorHead(in_ch=16, n_classes=3, code_size=7, velocity_tower=8)
 
 
+def test_velocity_gate_is_the_towers_third_output():
+    """``velocity_gate``: the tower gives (vx, vy, moving logit) per anchor; the first two are the
+    velocity residuals, the third the head's ``moving_logits``, flattened in the anchors' order."""
+    torch.manual_seed(0)
+    head = AnchorHead(in_ch=16, n_classes=3, n_rot=2, code_size=9, velocity_tower=8, motion_ch=5,
+                      velocity_gate=True).eval()
+    bev, motion = torch.randn(2, 16, 6, 7), torch.randn(2, 5, 6, 7)
+    out = head(bev, motion)
+    tower = head.velocity(torch.cat([bev, motion], 1)).view(2, 6, 3, 6, 7)
+    assert torch.equal(out.box_deltas.view(2, 6, 9, 6, 7)[:, :, 7:], tower[:, :, :2])
+    assert torch.equal(out.moving_logits, tower[:, :, 2])
+    flat = out.flatten()
+    assert torch.equal(flat.moving_logits, tower[:, :, 2].permute(0, 2, 3, 1).reshape(2, -1))
+    assert AnchorHead(in_ch=16, n_classes=3, velocity_tower=8)(bev).moving_logits is None
+    with pytest.raises(ValueError, match="gate needs a velocity tower"):
+        AnchorHead(in_ch=16, n_classes=3, velocity_gate=True)
+
+
 def test_detached_velocity_tower_sends_no_gradient_into_the_bev():
     """``velocity_detach``: the velocity residuals give the BEV features no gradient (so the
     velocity loss cannot reshape what the boxes read) and still train the tower; the box
@@ -693,6 +711,14 @@ def test_decode_of_encoded_targets_returns_gt_after_nms():
     assert_close(dyaw, np.zeros(3), atol=1e-5)
     assert ((boxes[:, 6] >= -math.pi / 4 - 1e-6) & (boxes[:, 6] < 7 * math.pi / 4)).all()
     assert dets[1].boxes.shape == (0, 9) and dets[1].labels.shape == (0,)
+
+    # The velocity gate: a box whose gate says still decodes at 0 m/s, the others keep theirs.
+    gate = to_map(torch.where(targets.matched_gt == 0, 5.0, -5.0)[:, None], ny, nx, n_anchors)
+    gated = decode(out.cls_logits, out.box_deltas, out.dir_logits, anchors, 0.3, 0.2, 50, 100,
+                   moving_logits=gate)[0].boxes
+    gated = gated[torch.argsort(gated[:, 0])]
+    assert_close(gated[:, :7], boxes[:, :7], atol=0)
+    assert_close(gated[:, 7:], torch.stack([gt[0, 7:], torch.zeros(2), torch.zeros(2)]), atol=1e-5)
 
     # Wild size residuals of an untrained head stay finite (clamped log ratios).
     wild = decode(out.cls_logits, torch.full_like(out.box_deltas, 100.0), out.dir_logits, anchors, 0.3, 0.2, 50, 100)[0]

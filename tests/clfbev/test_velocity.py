@@ -2,6 +2,7 @@
 scaled and flipped with its box; an unknown one (NaN) stays NaN and is masked, never 0."""
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -14,7 +15,7 @@ from clfbev.data import DataConfig, NuScenesDetection, Sample, velocity_or_still
 from clfbev.gt_paste import GTDatabase, gt_paste
 from clfbev.head import HeadOutput
 from clfbev.errors import ConfigError
-from clfbev.supervision.losses import detection_loss, velocity_loss
+from clfbev.supervision.losses import detection_loss, gated_velocity_loss, velocity_loss
 from clfbev.supervision.targets import TrainingCollate
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -143,6 +144,58 @@ def test_balanced_velocity_leaves_the_rest_of_the_loss():
     assert balanced["loss"].item() == pytest.approx(no_vel["loss"].item() + 2.0 * 0.2 * balanced["loss_vel"].item(),
                                                     rel=1e-6)
     assert plain["loss"].item() != pytest.approx(balanced["loss"].item())
+
+
+def test_gated_velocity_loss_regresses_the_moving_and_classifies_all():
+    """The speed term is the Smooth-L1 mean over the moving positives only, the gate term the
+    cross-entropy mean over every known positive; an unknown velocity is in neither."""
+    target = torch.tensor([[0.0, 0.0], [0.1, 0.0], [6.0, 8.0], [float("nan"), float("nan")]])
+    known = torch.tensor([True, True, True, False])
+    target = torch.nan_to_num(target)                  # as the targets carry it: masked by known
+    pred = torch.tensor([[3.0, 0.0], [0.0, 0.0], [6.0, 6.0], [9.0, 9.0]])
+    logit = torch.tensor([0.0, 2.0, -1.0, 7.0])
+    beta = 1.0
+    vel, gate = gated_velocity_loss(pred, logit, target, known, beta)
+    assert vel.item() == pytest.approx(2.0 - 0.5 * beta)                        # the moving one alone
+    bce = [math.log(2.0), math.log1p(math.exp(2.0)), math.log1p(math.exp(1.0))]  # still, still, moving
+    assert gate.item() == pytest.approx(sum(bce) / 3, rel=1e-6)
+    none_moving = gated_velocity_loss(pred[:2], logit[:2], target[:2], known[:2], beta)
+    assert none_moving[0].item() == 0.0 and none_moving[1].item() == pytest.approx(sum(bce[:2]) / 2, rel=1e-6)
+
+
+def test_gated_loss_gives_still_boxes_no_velocity_gradient():
+    """With a gate, the velocity residuals of the still positives get no gradient (only the
+    moving ones are regressed), the gate logits of every known positive do, and the rest of the
+    loss is the plain one without its velocity residuals."""
+    cfg = replace(tiny(), velocity_tower=8, velocity_gate=True)
+    s = _augmented_and_pasted(0.3, 1.0, False)
+    boxes = s.gt_boxes.copy()
+    boxes[2, 7:9] = (0.2, -0.1)                       # the pasted car stands (nearly) still
+    s = replace(s, gt_boxes=boxes)
+    _, targets = TrainingCollate(cfg, cameras=False)([s])
+    ny, nx = cfg.head_feature_size
+    n_anchors = len(cfg.class_names) * len(cfg.anchor_rotations)
+    g = torch.Generator().manual_seed(2)
+    maps = [torch.randn(1, n_anchors * k, ny, nx, generator=g) for k in (1, cfg.code_size, cfg.n_dir_bins, 1)]
+    flat = HeadOutput(*maps).flatten()
+    flat.box_deltas.requires_grad_(True)
+    flat.moving_logits.requires_grad_(True)
+    losses = detection_loss(flat, targets.anchor, cfg.loss, False, 1.0, 0.2)
+    losses["loss"].backward()
+    t = targets.anchor
+    speed = t.box_targets[0, :, 7:9].norm(dim=-1)
+    known = t.positives[0] & (t.box_weights[0, :, 7] > 0)
+    moving, still = known & (speed > 1.0), known & (speed <= 1.0)
+    assert moving.any() and still.any()
+    vel_grad, gate_grad = flat.box_deltas.grad[0, :, 7:], flat.moving_logits.grad[0]
+    assert (vel_grad[moving] != 0).all() and not vel_grad[still].any()
+    assert (gate_grad[known] != 0).all() and not gate_grad[~known].any()
+    no_vel = detection_loss(HeadOutput(*maps[:3]), t, replace(cfg.loss, code_weights=cfg.loss.code_weights[:7] + (0.0, 0.0)))
+    assert losses["loss_reg"].item() == pytest.approx(no_vel["loss_reg"].item(), rel=1e-6)
+    expected = no_vel["loss"].item() + 2.0 * 0.2 * (losses["loss_vel"].item() + losses["loss_moving"].item())
+    assert losses["loss"].item() == pytest.approx(expected, rel=1e-6)
+    with pytest.raises(ConfigError, match="velocity_gate needs velocity_tower"):
+        replace(tiny(), velocity_gate=True)
 
 
 @pytest.mark.parametrize("field", ["heading_from_motion", "velocity_beta", "velocity_weight"])
