@@ -209,6 +209,7 @@ class CameraEncoder(nn.Module):
         if semantic_lift and semantic_classes < 1:
             raise ValueError("semantic_lift needs semantic_classes > 0")
         self.semantic_lift = semantic_lift
+        self.image_features_frozen = False
         if feature_stride not in (8, 16):
             raise ValueError(f"feature_stride must be 8 or 16, got {feature_stride}")
         self.depth_bins = tuple(float(v) for v in depth_bins)
@@ -236,6 +237,23 @@ class CameraEncoder(nn.Module):
             # The focal-loss prior (as the anchor head): every class starts at probability prior_prob.
             nn.init.constant_(self.semantic_head.bias, -math.log((1 - prior_prob) / prior_prob))
         self.to(memory_format=torch.channels_last)
+
+    def freeze_image_features(self) -> None:
+        """Keep the ResNet and the FPN as they are (the pretrained image features): no gradient,
+        and their BatchNorm stays in eval mode with its statistics, in training too. The depth
+        net (depth bins and context) and the semantic head still train. Their backward pass,
+        the larger part of the encoder's cost, is then never computed."""
+        for module in (self.backbone, self.neck):
+            module.requires_grad_(False)
+        self.image_features_frozen = True
+        self.train(self.training)
+
+    def train(self, mode: bool = True) -> CameraEncoder:
+        super().train(mode)
+        if self.image_features_frozen:
+            self.backbone.eval()
+            self.neck.eval()
+        return self
 
     @property
     def out_channels(self) -> int:

@@ -80,8 +80,12 @@ def precise_batchnorm(model: CLFusionBEV, train_set: NuScenesDetection, tc: Trai
     uses (precise BN, Wu & Johnson 2021). Deterministic: the batches are those of a fixed epoch
     index no training epoch reaches, so a resumed run gets the same statistics.
     """
-    norms = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+    was_training = model.training
+    model.train()
+    # Those in training mode: a frozen image encoder keeps its statistics.
+    norms = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm) and m.training]
     if not norms or tc.precise_bn_batches <= 0:
+        model.train(was_training)
         return
     device = next(model.parameters()).device
     samples = EpochSamples(train_set, tc.seed, PRECISE_BN_EPOCH, augment, model.cfg.pc_range)
@@ -90,8 +94,6 @@ def precise_batchnorm(model: CLFusionBEV, train_set: NuScenesDetection, tc: Trai
     for m in norms:
         m.reset_running_stats()
         m.momentum = None            # a cumulative average over the batches below
-    was_training = model.training
-    model.train()
     for indices in batches:
         batch = collate([samples[i] for i in indices]).to(device)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):

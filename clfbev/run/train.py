@@ -198,7 +198,7 @@ def load_training_data(data: str | Path, cfg: ModelConfig, tc: TrainConfig, rank
 def start_state(cfg: ModelConfig, variant: str, tc: TrainConfig, device: torch.device, ckpt: dict | None,
                 path: Path) -> TrainState:
     """The model seeded with ``tc.seed`` (its camera encoder then loaded from ``tc.image_init``
-    where given) and its AdamW, or both as checkpoint ``ckpt`` (read from ``path``) left them,
+    where given, and its image features frozen with ``tc.image_freeze``) and its AdamW, or both as checkpoint ``ckpt`` (read from ``path``) left them,
     with the torch RNG state."""
     torch.manual_seed(tc.seed)
     model = CLFusionBEV(cfg, variant)
@@ -207,6 +207,10 @@ def start_state(cfg: ModelConfig, variant: str, tc: TrainConfig, device: torch.d
             raise ConfigError(f"--image-init {tc.image_init}: the variant '{variant}' has no camera encoder")
         started = init_camera_encoder(model.camera_encoder, tc.image_init, cfg)
         print(f"clfbev train: camera encoder {started}", file=sys.stderr)
+    if tc.image_freeze:
+        if model.camera_encoder is None:
+            raise ConfigError(f"--image-freeze: the variant '{variant}' has no camera encoder")
+        model.camera_encoder.freeze_image_features()
     model = model.to(device)
     state = TrainState(model, torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay))
     if ckpt is not None:

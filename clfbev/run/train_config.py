@@ -52,6 +52,8 @@ class TrainConfig:
     ``image_init``: the camera encoder starts from an encoder checkpoint of ``clfbev pretrain``
     (:mod:`clfbev.run.image_init`) instead of its seeded initialisation: a path, or
     :data:`SHIPPED`, the one shipped in ``clfbev/weights/`` for the config's camera.
+    ``image_freeze``: that encoder's ResNet and FPN stay fixed
+    (:meth:`clfbev.camera_encoder.CameraEncoder.freeze_image_features`).
     """
 
     train_split: str = field(default="sim-train", metadata=setting(
@@ -99,6 +101,10 @@ class TrainConfig:
         f"'{SHIPPED}' (the one shipped in clfbev/weights/ for the config's camera; from scratch where none "
         "ships for it), 'torchvision' (torchvision's ImageNet ResNet backbone from the local torch cache, for a "
         "cam_width of 64) or '' (from scratch)", recipe=True, metavar="PATH"))
+
+    image_freeze: bool = field(default=False, metadata=setting(
+        "keep the camera encoder's ResNet and FPN as --image-init gives them (no gradient, BatchNorm statistics "
+        "kept); its depth net and everything after it train", recipe=True))
 
 
 # The fields that do not change the trained weights: a resume and the results table ignore them.

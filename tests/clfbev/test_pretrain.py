@@ -167,6 +167,37 @@ def test_image_init_loads_exactly_the_encoder_tensors(encoder_ckpt, micro, tmp_p
     assert not torch.equal(again.camera_encoder.state_dict()[name], saved[name])
 
 
+def test_image_freeze_keeps_the_encoders_image_features(dense_data, encoder_ckpt, micro, tmp_path):
+    """``image_freeze``: training steps and precise BatchNorm leave every tensor of the ResNet and
+    the FPN (weights and BatchNorm statistics) as the encoder checkpoint gave them, while the
+    depth net and the rest of the model train."""
+    from clfbev.data import NuScenesDetection, collate
+    from clfbev.run.epochs import precise_batchnorm
+    from clfbev.supervision.targets import batch_loss
+
+    cfg = load_config(str(micro))
+    tc = TrainConfig(seed=5, image_init=str(encoder_ckpt), image_freeze=True, batch_size=1, precise_bn_batches=2)
+    model = start_state(cfg, "camera", tc, torch.device("cpu"), None, tmp_path / "last.pt").model.train()
+    enc = model.camera_encoder
+    assert not enc.backbone.training and not enc.neck.training and enc.depth_net.training
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    ds = NuScenesDetection(dense_data, "v1.0-sim", "sim-train", cfg.data_config())
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-2)
+    for i in range(2):
+        loss = batch_loss(model, collate([ds[i]]))["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    precise_batchnorm(model, ds, tc, None)
+    after = model.state_dict()
+    image = [k for k in before if k.startswith(("camera_encoder.backbone.", "camera_encoder.neck."))]
+    assert image and all(torch.equal(after[k], before[k]) for k in image)
+    assert any("running_mean" in k for k in image)
+    assert not torch.equal(after["camera_encoder.depth_net.weight"], before["camera_encoder.depth_net.weight"])
+    trained = [k for k in before if k.startswith("head.") and before[k].is_floating_point()]
+    assert any(not torch.equal(after[k], before[k]) for k in trained)
+
+
 def test_image_init_refuses_another_architecture(encoder_ckpt, micro, tmp_path):
     cfg = load_config(str(micro))
     ckpt = torch.load(encoder_ckpt, weights_only=True)
@@ -196,6 +227,8 @@ def test_bad_input_exits_2(dense_data, encoder_ckpt, micro, tmp_path):
                              check=False), "encoder.pt", "cam_width")
     _assert_bad_input(clfbev(*train[:-2], "--variant", "lidar", "--out", tmp_path / "r3", "--image-init",
                              encoder_ckpt, check=False), "lidar")
+    _assert_bad_input(clfbev(*train[:-2], "--variant", "lidar", "--out", tmp_path / "r3b", "--image-freeze",
+                             check=False), "--image-freeze", "lidar")
     # A dataroot without dense labels: the missing file is named.
     bare = tmp_path / "bare"
     shutil.copytree(dense_data, bare, ignore=shutil.ignore_patterns("*_seg.png"))
