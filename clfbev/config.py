@@ -54,7 +54,8 @@ class ModelConfig:
     the :class:`clfbev.head.VelocityTower` that predicts it from the BEV and the sweep bands),
     ``velocity_detach`` (the tower's gradient stops at the shared BEV features),
     ``velocity_gate`` (the tower also classifies each box as moving or still; the speed is
-    regressed on the moving boxes only and decoded only where the gate fires,
+    regressed on the moving boxes only, or with ``velocity_balance`` on all of them balanced, and
+    decoded only where the gate fires,
     :func:`clfbev.supervision.losses.gated_velocity_loss`; needs ``velocity_tower``),
     ``heading_from_motion`` (m/s, >= 0: decoding turns a box's yaw by pi where it points against
     its predicted velocity and the predicted speed is above this; 0: off), ``score_thr``,

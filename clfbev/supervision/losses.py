@@ -104,10 +104,11 @@ def velocity_loss(pred: Tensor, target: Tensor, known: Tensor, beta: float) -> T
 
 
 def gated_velocity_loss(pred: Tensor, moving_logit: Tensor, target: Tensor, known: Tensor,
-                        beta: float) -> tuple[Tensor, Tensor]:
+                        beta: float, balanced: bool = False) -> tuple[Tensor, Tensor]:
     """(velocity loss, gate loss) of P positives, each a mean: the Smooth-L1 of the velocity over
-    the moving positives only (GT faster than :data:`MOVING_SPEED`), and the binary
-    cross-entropy of the moving logit over all positives with a known velocity.
+    the moving positives only (GT faster than :data:`MOVING_SPEED`), or with ``balanced``
+    :func:`velocity_loss` over all of them, and the binary cross-entropy of the moving logit over
+    all positives with a known velocity.
 
     pred, target : (P, 2) ``vx, vy`` m/s; moving_logit : (P,); known : (P,) bool.
     beta : Smooth-L1 beta, m/s.
@@ -117,11 +118,17 @@ def gated_velocity_loss(pred: Tensor, moving_logit: Tensor, target: Tensor, know
     reach the regression; they only teach the gate, and decoding keeps the regressed velocity
     only where the gate fires (:func:`clfbev.head.decode`). The gate's cross-entropy is not
     rebalanced, so its probability stays calibrated and its 0.5 threshold is the choice that
-    errs less often. Each is 0 (with a gradient path) where it has no box.
+    errs less often. Each is 0 (with a gradient path) where it has no box. With ``balanced`` the
+    still boxes are regressed too (half the weight in total): the regression then learns what a
+    still box looks like, and a gate that fires on one passes a speed near 0, not whatever a
+    regression that never saw a still box gives it.
     """
     moving = known & (target.norm(dim=-1) > MOVING_SPEED)
-    per_box = smooth_l1(pred - target, beta).sum(-1)                              # (P,)
-    loss_vel = (per_box * moving.to(pred.dtype)).sum() / moving.sum().clamp(min=1)
+    if balanced:
+        loss_vel = velocity_loss(pred, target, known, beta)
+    else:
+        per_box = smooth_l1(pred - target, beta).sum(-1)                          # (P,)
+        loss_vel = (per_box * moving.to(pred.dtype)).sum() / moving.sum().clamp(min=1)
     bce = F.binary_cross_entropy_with_logits(moving_logit, moving.to(moving_logit.dtype), reduction="none")
     loss_gate = (bce * known.to(bce.dtype)).sum() / known.sum().clamp(min=1)
     return loss_vel, loss_gate
@@ -145,7 +152,7 @@ def detection_loss(
     velocity_balance : the velocity residuals (7:) leave the Smooth-L1 of the box residuals for
         :func:`velocity_loss` (``velocity_beta``), weighted ``weights.reg * velocity_weight``.
         Predictions with ``moving_logits`` (the tower's gate) take :func:`gated_velocity_loss`
-        instead, its two terms at the same weight, whatever ``velocity_balance`` says.
+        instead (balanced with ``velocity_balance``), its two terms at the same weight.
 
     Returns
     -------
@@ -178,7 +185,7 @@ def detection_loss(
     pos_index = torch.nonzero(positives.reshape(-1)).flatten()
     gated = flat.moving_logits is not None
     loss_reg, loss_reg_theta, loss_vel, loss_moving = _box_losses(flat, targets, pos_index, norm, weights,
-                                                                  velocity_balance or gated, velocity_beta)
+                                                                  velocity_balance, velocity_beta)
 
     # Direction (eq. 8): only positives have a heading to classify.
     n_bins = flat.dir_logits.shape[-1]
@@ -203,13 +210,15 @@ def detection_loss(
 
 
 def _box_losses(flat: FlatPredictions, targets: AnchorTargets, pos_index: Tensor, norm: Tensor, weights: LossWeights,
-                velocity_own: bool, velocity_beta: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                velocity_balance: bool, velocity_beta: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """(loss_reg, loss_reg_theta, loss_vel, loss_moving) of the positives ``pos_index`` (eq. 6,
     7): Smooth-L1 per residual, the angle through sin-difference, each divided by ``norm``. Only
     positives have a box (their weights are 0 elsewhere), so only their rows are computed: a
-    few hundred of the ~330k anchors of a 128 x 128 grid. With ``velocity_own`` the velocity is
-    :func:`gated_velocity_loss`'s where the predictions have a gate, else :func:`velocity_loss`'s,
-    instead of a share of the Smooth-L1; ``loss_moving`` is the gate's (0 without one)."""
+    few hundred of the ~330k anchors of a 128 x 128 grid. Where the predictions have a gate the
+    velocity is :func:`gated_velocity_loss`'s, else with ``velocity_balance``
+    :func:`velocity_loss`'s, instead of a share of the Smooth-L1; ``loss_moving`` is the gate's
+    (0 without one)."""
+    velocity_own = velocity_balance or flat.moving_logits is not None
     code_size = flat.box_deltas.shape[-1]
     deltas = flat.box_deltas.reshape(-1, code_size).index_select(0, pos_index)
     box_targets = targets.box_targets.reshape(-1, code_size).index_select(0, pos_index)
@@ -230,7 +239,7 @@ def _box_losses(flat: FlatPredictions, targets: AnchorTargets, pos_index: Tensor
         if flat.moving_logits is not None:
             moving_logit = flat.moving_logits.reshape(-1).index_select(0, pos_index)
             loss_vel, loss_moving = gated_velocity_loss(deltas[:, 7:9], moving_logit, box_targets[:, 7:9], known,
-                                                        velocity_beta)
+                                                        velocity_beta, velocity_balance)
         else:
             loss_vel = velocity_loss(deltas[:, 7:9], box_targets[:, 7:9], known, velocity_beta)
     return loss_reg, loss_reg_theta, loss_vel, loss_moving

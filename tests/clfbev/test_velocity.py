@@ -161,6 +161,9 @@ def test_gated_velocity_loss_regresses_the_moving_and_classifies_all():
     assert gate.item() == pytest.approx(sum(bce) / 3, rel=1e-6)
     none_moving = gated_velocity_loss(pred[:2], logit[:2], target[:2], known[:2], beta)
     assert none_moving[0].item() == 0.0 and none_moving[1].item() == pytest.approx(sum(bce[:2]) / 2, rel=1e-6)
+    balanced = gated_velocity_loss(pred, logit, target, known, beta, balanced=True)
+    assert balanced[0].item() == pytest.approx(velocity_loss(pred, target, known, beta).item(), rel=1e-6)
+    assert balanced[0].item() != pytest.approx(vel.item()) and balanced[1].item() == gate.item()
 
 
 def test_gated_loss_gives_still_boxes_no_velocity_gradient():
@@ -194,6 +197,9 @@ def test_gated_loss_gives_still_boxes_no_velocity_gradient():
     assert losses["loss_reg"].item() == pytest.approx(no_vel["loss_reg"].item(), rel=1e-6)
     expected = no_vel["loss"].item() + 2.0 * 0.2 * (losses["loss_vel"].item() + losses["loss_moving"].item())
     assert losses["loss"].item() == pytest.approx(expected, rel=1e-6)
+    flat.box_deltas.grad = None
+    detection_loss(flat, t, cfg.loss, True, 1.0, 0.2)["loss"].backward()       # balanced: the still ones too
+    assert (flat.box_deltas.grad[0, :, 7:][known] != 0).all()
     with pytest.raises(ConfigError, match="velocity_gate needs velocity_tower"):
         replace(tiny(), velocity_gate=True)
 
