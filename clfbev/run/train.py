@@ -198,8 +198,8 @@ def load_training_data(data: str | Path, cfg: ModelConfig, tc: TrainConfig, rank
 def start_state(cfg: ModelConfig, variant: str, tc: TrainConfig, device: torch.device, ckpt: dict | None,
                 path: Path) -> TrainState:
     """The model seeded with ``tc.seed`` (its camera encoder then loaded from ``tc.image_init``
-    where given, and its image features frozen with ``tc.image_freeze``) and its AdamW, or both as checkpoint ``ckpt`` (read from ``path``) left them,
-    with the torch RNG state."""
+    where given, and its image features frozen with ``tc.image_freeze``) and its AdamW, or both
+    as checkpoint ``ckpt`` (read from ``path``) left them, with the torch RNG state."""
     torch.manual_seed(tc.seed)
     model = CLFusionBEV(cfg, variant)
     if tc.image_init and ckpt is None:     # a resumed run's checkpoint already holds the encoder

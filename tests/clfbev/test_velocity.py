@@ -193,7 +193,8 @@ def test_gated_loss_gives_still_boxes_no_velocity_gradient():
     vel_grad, gate_grad = flat.box_deltas.grad[0, :, 7:], flat.moving_logits.grad[0]
     assert (vel_grad[moving] != 0).all() and not vel_grad[still].any()
     assert (gate_grad[known] != 0).all() and not gate_grad[~known].any()
-    no_vel = detection_loss(HeadOutput(*maps[:3]), t, replace(cfg.loss, code_weights=cfg.loss.code_weights[:7] + (0.0, 0.0)))
+    no_vel_weights = replace(cfg.loss, code_weights=cfg.loss.code_weights[:7] + (0.0, 0.0))
+    no_vel = detection_loss(HeadOutput(*maps[:3]), t, no_vel_weights)
     assert losses["loss_reg"].item() == pytest.approx(no_vel["loss_reg"].item(), rel=1e-6)
     expected = no_vel["loss"].item() + 2.0 * 0.2 * (losses["loss_vel"].item() + losses["loss_moving"].item())
     assert losses["loss"].item() == pytest.approx(expected, rel=1e-6)
