@@ -311,6 +311,7 @@ class CameraEncoder(nn.Module):
         intrinsics: Tensor,
         T_lidar_from_cam: Tensor,
         img_aug: Tensor | None = None,
+        oracle_bins: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         """Camera BEV, the depth distribution it was lifted with (for the depth loss) and the
         class logits of the image features (for the perspective loss).
@@ -321,11 +322,14 @@ class CameraEncoder(nn.Module):
         intrinsics : (B, N, 3, 3) K of the original images.
         T_lidar_from_cam : (B, N, 4, 4) camera -> lidar frame.
         img_aug : (B, N, 3, 3) original -> augmented pixels, or None.
+        oracle_bins : (B, N, h, w) int64 depth bin to lift each cell with in place of its
+            predicted distribution (one-hot), -1 to keep the prediction; None: the prediction
+            everywhere. A diagnostic (:func:`oracle_depth`), not a model.
 
         Returns
         -------
         bev : (B, out_channels, ny, nx) camera BEV in the lidar frame.
-        depth : (B, N, D, h, w) depth distribution of every feature cell.
+        depth : (B, N, D, h, w) the PREDICTED depth distribution of every feature cell.
         semantics : (B, N, semantic_classes, h, w) class logits, or None without a semantic head.
         """
         depth, context, semantics = self.image_features(images)
@@ -333,4 +337,20 @@ class CameraEncoder(nn.Module):
             context = torch.cat([context, semantics.sigmoid()], dim=2)           # (B, N, C + n_cls, h, w)
         geom = lift_geometry(CameraGeometry(intrinsics, T_lidar_from_cam, img_aug, self.image_size,
                                             self.feature_stride, self.depth_bins))
-        return compress_z(splat(depth, context, geom, self.pc_range, self.bev_voxel)), depth, semantics
+        lifted = depth if oracle_bins is None else oracle_depth(depth, oracle_bins)
+        return compress_z(splat(lifted, context, geom, self.pc_range, self.bev_voxel)), depth, semantics
+
+
+def oracle_depth(depth_probs: Tensor, bins: Tensor) -> Tensor:
+    """The depth distribution with the cells that have a known bin made one-hot at it.
+
+    An oracle lift: with the lidar's depth in place of the predicted one, what the camera BEV
+    still lacks is recognition, so a camera-only detector trained so separates the depth error
+    from the image features' (a diagnostic; the lidar is not a camera's input).
+
+    depth_probs : (B, N, D, h, w); bins : (B, N, h, w) int64, -1 where unknown -> (B, N, D, h, w).
+    """
+    D = depth_probs.shape[2]
+    known = bins >= 0
+    onehot = F.one_hot(bins.clamp(min=0), D).permute(0, 1, 4, 2, 3).to(depth_probs.dtype)
+    return torch.where(known[:, :, None], onehot, depth_probs)

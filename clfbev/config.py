@@ -43,7 +43,10 @@ class ModelConfig:
     Camera: ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``, ``context_ch``, ``depth_bins``
     (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``,
     ``cam_semantic_lift`` (lift the perspective head's class probabilities with the context, so
-    the camera BEV carries them; needs ``loss.semantic > 0``, see :mod:`clfbev.supervision.perspective`).
+    the camera BEV carries them; needs ``loss.semantic > 0``, see :mod:`clfbev.supervision.perspective`),
+    ``cam_oracle_depth`` (a diagnostic, never a recipe: lift every camera cell that a key-frame
+    lidar point reaches with that point's depth bin in place of the predicted distribution,
+    :func:`clfbev.camera_encoder.oracle_depth`, in training and evaluation alike).
     Fusion: ``fusion_dim`` (ConvFuser / MCM / BSM channels), ``attn_heads``, ``attn_mode``
     (exact | window | pooled), ``attn_window``, ``attn_pool_stride``, ``attn_query_chunk``,
     ``attn_ffn_ratio``.
@@ -90,6 +93,7 @@ class ModelConfig:
     feature_stride: int = 8
     cam_z_slabs: int = 1
     cam_semantic_lift: bool = False
+    cam_oracle_depth: bool = False
     # fusion
     fusion_dim: int = 64
     attn_heads: int = 4

@@ -36,7 +36,7 @@ import torch
 from torch import Tensor, nn
 
 from clfbev.anchors import make_anchors
-from clfbev.camera_encoder import CameraEncoder
+from clfbev.camera_encoder import CameraEncoder, CameraGeometry
 from clfbev.config import VARIANTS, ModelConfig
 from clfbev.data import Batch
 from clfbev.fusion import BSM, MCM, ConvFuser
@@ -44,6 +44,7 @@ from clfbev.head import AnchorHead, Detections, decode
 from clfbev.layers import BN_EPS, BN_MOMENTUM, conv_bn_relu
 from clfbev.lidar_encoder import LidarEncoder
 from clfbev.outputs import AttentionInputs, ModelOutputs
+from clfbev.supervision.depth import depth_targets
 
 
 class Encoded(NamedTuple):
@@ -184,13 +185,24 @@ class CLFusionBEV(nn.Module):
                 motion = lidar.motion                                      # (B, sweep_channels, ny, nx)
         if self.camera_encoder is not None:
             cam_bev, depth, semantics = self.camera_encoder.lift_splat(batch.images, batch.intrinsics,
-                                                                       batch.T_lidar_from_cam, batch.img_aug)
+                                                                       batch.T_lidar_from_cam, batch.img_aug,
+                                                                       self._oracle_bins(batch))
         if self.variant == "lidar":
             return Encoded(lidar.bev, None, None, motion, AttentionInputs())
         if self.variant == "camera":
             return Encoded(cam_bev, depth, semantics, None, AttentionInputs())
         fused, attention = self.fuse(lidar.bev, cam_bev)
         return Encoded(fused, depth, semantics, motion, attention)
+
+    def _oracle_bins(self, batch: Batch) -> Tensor | None:
+        """(B, N, h, w) the key-frame lidar's depth bin per camera cell (-1: none) with
+        ``cfg.cam_oracle_depth``, else None; the cells the depth loss is trained on."""
+        if not self.cfg.cam_oracle_depth:
+            return None
+        cfg = self.cfg
+        cams = CameraGeometry(batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug, cfg.image_size,
+                              cfg.feature_stride, cfg.depth_bins)
+        return depth_targets(batch.points, cams, batch.pasted or None)
 
     def fuse(self, lidar_bev: Tensor, cam_bev: Tensor) -> tuple[Tensor, AttentionInputs]:
         """MCM -> ConvFuser -> BSM, as the variant has them: (B, Cl, ny, nx), (B, Cc, ny, nx) ->

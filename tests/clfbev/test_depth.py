@@ -9,11 +9,12 @@ import pytest
 import torch
 
 from clfbev.augment import image_matrix
-from clfbev.camera_encoder import CameraEncoder, CameraGeometry
+from clfbev.camera_encoder import CameraEncoder, CameraGeometry, lift_geometry, oracle_depth, splat
 from clfbev.config import tiny
-from clfbev.data import NuScenesDetection, resize_and_crop
+from clfbev.data import NuScenesDetection, collate, resize_and_crop
 from clfbev.model import CLFusionBEV
 from clfbev.supervision.depth import depth_loss, depth_targets
+from clfbev.supervision.targets import build_targets
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -66,6 +67,50 @@ def test_a_point_lands_in_its_bin_and_feature_cell_through_resize_crop_and_flip(
     assert t.shape == (1, 1, H // s, W // s)
     assert t[0, 0, row, col] == math.floor((20.3 - 1.0) / 1.0)      # the nearest kept point wins
     assert (t >= 0).sum() == 1
+
+
+def test_the_oracle_lift_puts_a_cells_context_on_its_lidar_point():
+    H, W, s = 192, 352, 8
+    _, A = resize_and_crop(np.zeros((900, 1600, 3), np.uint8), (H, W))
+    cams = CameraGeometry(K_1600[None, None], front_camera()[None, None], torch.from_numpy(A)[None, None],
+                          (H, W), s, BINS)
+    point = torch.tensor([[20.3, -1.0, 0.5, 0.5, 0.0]], dtype=torch.float64)
+    bins = depth_targets([point], cams)                                # (1, 1, h, w), one known cell
+    row, col = (int(i) for i in torch.nonzero(bins[0, 0] >= 0)[0])
+    torch.manual_seed(0)
+    D = 51
+    predicted = torch.softmax(torch.randn(1, 1, D, H // s, W // s), dim=2)
+    lifted = oracle_depth(predicted, bins)
+    known = bins[0, 0] >= 0
+    assert torch.equal(lifted[0, 0][:, ~known], predicted[0, 0][:, ~known])   # the rest keep the prediction
+    assert torch.equal(lifted[0, 0, :, row, col], torch.nn.functional.one_hot(bins[0, 0, row, col], D).float())
+
+    # The cell's frustum point at its oracle bin lies on the lidar point: within half a bin
+    # along the ray, within half a feature cell (8 px at 20 m: 0.29 m) across it.
+    geom = lift_geometry(cams)                                         # (1, 1, D, h, w, 3) lidar xyz
+    x, y, _ = geom[0, 0, bins[0, 0, row, col], row, col].tolist()
+    assert abs(x - 20.3) <= 0.5 and abs(y + 1.0) <= 0.3
+    # Lifted alone (the prediction zeroed), the cell's context lands in that BEV cell and no other.
+    pc_range, voxel = (-51.2, -51.2, -5.0, 51.2, 51.2, 3.0), (0.8, 0.8, 8.0)
+    alone = oracle_depth(torch.zeros_like(predicted), bins)
+    bev = splat(alone, torch.ones(1, 1, 1, H // s, W // s), geom, pc_range, voxel)[0, 0, 0]
+    assert torch.nonzero(bev).tolist() == [[int((y + 51.2) // 0.8), int((x + 51.2) // 0.8)]]
+    assert float(bev.sum()) == 1.0
+
+
+def test_the_model_lifts_with_the_cells_the_depth_loss_trains(tiny_dataset):
+    cfg = replace(tiny(), cam_oracle_depth=True)
+    ds = NuScenesDetection(tiny_dataset, "v1.0-sim", "all", cfg.data_config())
+    batch = collate([ds[0]])
+    model = CLFusionBEV(cfg, "camera").eval()
+    bins = model._oracle_bins(batch)
+    assert torch.equal(bins, build_targets(batch, cfg, model.anchors).depth)
+    assert (bins >= 0).float().mean() > 0.3                            # most cells see a lidar point
+    with torch.no_grad():
+        oracle_bev = model.bev_features(batch)
+        model.cfg = replace(cfg, cam_oracle_depth=False)
+        predicted_bev = model.bev_features(batch)
+    assert not torch.allclose(oracle_bev, predicted_bev)
 
 
 def test_depth_loss_is_bevdepths_bce_and_decreases_in_training():
