@@ -34,6 +34,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from clfbev.config import ModelConfig
+from clfbev.efficientnet_lite import EfficientNetLite0
 from clfbev.resnet import FPN, ResNet
 from clfbev.settings import grid_shape_of
 
@@ -174,6 +176,9 @@ class CameraEncoder(nn.Module):
     Parameters
     ----------
     depth, width : ResNet depth (18/34/50/101) and first-stage width.
+    backbone : ``resnet`` (:class:`clfbev.resnet.ResNet` of ``depth`` and ``width``) or
+        ``efficientnet_lite0`` (:class:`clfbev.efficientnet_lite.EfficientNetLite0`, for the
+        ImageNet experiment; ``depth`` and ``width`` unused).
     fpn_ch : FPN output channels.
     depth_bins : (d_min, d_max, d_step) in metres of camera z.
     context_ch : C, context channels per frustum point.
@@ -204,6 +209,7 @@ class CameraEncoder(nn.Module):
         semantic_classes: int = 0,
         semantic_lift: bool = False,
         prior_prob: float = 0.01,
+        backbone: str = "resnet",
     ) -> None:
         super().__init__()
         if semantic_lift and semantic_classes < 1:
@@ -225,7 +231,7 @@ class CameraEncoder(nn.Module):
         if H % feature_stride or W % feature_stride:
             raise ValueError(f"image_size {image_size} must be a multiple of feature_stride {feature_stride}")
 
-        self.backbone = ResNet(depth, 3, width)
+        self.backbone = EfficientNetLite0() if backbone == "efficientnet_lite0" else ResNet(depth, 3, width)
         # Levels fed to the FPN: its output has the stride of the finest one.
         self._levels = slice(0, 3) if feature_stride == 8 else slice(1, 3)
         self.neck = FPN(list(self.backbone.out_channels[self._levels]), fpn_ch)
@@ -237,6 +243,15 @@ class CameraEncoder(nn.Module):
             # The focal-loss prior (as the anchor head): every class starts at probability prior_prob.
             nn.init.constant_(self.semantic_head.bias, -math.log((1 - prior_prob) / prior_prob))
         self.to(memory_format=torch.channels_last)
+
+    @classmethod
+    def from_config(cls, cfg: ModelConfig) -> CameraEncoder:
+        """The camera encoder of a detector of ``cfg`` (the detector's and the image-view
+        pretraining's: one state dict layout)."""
+        return cls(cfg.cam_depth, cfg.cam_width, cfg.fpn_ch, cfg.depth_bins, cfg.context_ch,
+                   cfg.image_size, cfg.feature_stride, cfg.pc_range, cfg.cam_bev_voxel,
+                   semantic_classes=len(cfg.class_names) if cfg.loss.semantic > 0 else 0,
+                   semantic_lift=cfg.cam_semantic_lift, prior_prob=cfg.prior_prob, backbone=cfg.cam_backbone)
 
     def freeze_image_features(self) -> None:
         """Keep the ResNet and the FPN as they are (the pretrained image features): no gradient,

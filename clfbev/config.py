@@ -21,8 +21,8 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from clfbev.errors import ConfigError
-from clfbev.settings import (ANCHOR_ROTATIONS, ANCHOR_SIZES, ATTENTION_MODES, DETECTION_CLASSES, LIDAR_SWEEP_PERIOD_S,
-                             POINT_CH, DataConfig, LossWeights, conv_out_size, grid_shape_of)
+from clfbev.settings import (ANCHOR_ROTATIONS, ANCHOR_SIZES, ATTENTION_MODES, CAMERA_BACKBONES, DETECTION_CLASSES,
+                             LIDAR_SWEEP_PERIOD_S, POINT_CH, DataConfig, LossWeights, conv_out_size, grid_shape_of)
 
 VARIANTS = ("lidar", "camera", "concat", "mcm", "full")
 
@@ -40,7 +40,8 @@ class ModelConfig:
     log2(stride) downsamplings also halve x and y), ``sparse_blocks``, ``sweep_bands`` (lag
     bands whose point counts per BEV cell join the lidar BEV, :mod:`clfbev.sweep_bev`; 0: none),
     ``sweep_offsets`` (each band's mean offset in its cell joins them too: a walker's sub-cell trail).
-    Camera: ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``, ``context_ch``, ``depth_bins``
+    Camera: ``cam_backbone`` (``resnet``, or ``efficientnet_lite0`` for the ImageNet experiment,
+    :mod:`clfbev.efficientnet_lite`), ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``, ``context_ch``, ``depth_bins``
     (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``,
     ``cam_semantic_lift`` (lift the perspective head's class probabilities with the context, so
     the camera BEV carries them; needs ``loss.semantic > 0``, see :mod:`clfbev.supervision.perspective`),
@@ -85,6 +86,7 @@ class ModelConfig:
     sweep_bands: int = 0
     sweep_offsets: bool = False
     # camera
+    cam_backbone: str = "resnet"
     cam_depth: int = 18
     cam_width: int = 16
     fpn_ch: int = 64
@@ -149,6 +151,8 @@ class ModelConfig:
             raise ConfigError("velocity_gate needs velocity_tower > 0")
         if not 1 <= self.min_positives <= 4:
             raise ConfigError(f"min_positives must be in [1, 4], got {self.min_positives}")
+        if self.cam_backbone not in CAMERA_BACKBONES:
+            raise ConfigError(f"cam_backbone must be one of {CAMERA_BACKBONES}, got {self.cam_backbone!r}")
         if self.attn_mode not in ATTENTION_MODES:
             raise ConfigError(f"attn_mode must be one of {ATTENTION_MODES}, got {self.attn_mode!r}")
         if self.fusion_dim % self.attn_heads or self.fusion_dim % 4:

