@@ -41,8 +41,6 @@ ENCODER_FORMAT = "clfbev-encoder-v1"
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
 CAMERA_FIELDS = ("image_size", "cam_backbone", "cam_depth", "cam_width", "fpn_ch", "context_ch", "depth_bins",
                  "feature_stride")
-
-
 # Camera fields added after encoders were recorded: the value every earlier record was made with.
 EARLIER_CAMERA_FIELDS = {"cam_backbone": "resnet"}
 
