@@ -44,10 +44,12 @@ from clfbev.errors import CheckpointError, ConfigError, DataError, TrainError
 from clfbev.gt_paste import GTDatabase
 from clfbev.model import CLFusionBEV
 from clfbev.run.checkpoint import REQUIRED, RESUME_FIELDS, Checkpoints, check_matches, load_checkpoint
+from clfbev.run.efficientnet_init import EFFICIENTNET_LITE0
 from clfbev.run.epochs import EpochSamples, epoch_batches, precise_batchnorm
 from clfbev.run.evaluate import evaluate_model
 from clfbev.run.image_init import init_camera_encoder
 from clfbev.run.run_log import ScalarLog, code_version, write_run_json
+from clfbev.run.torchvision_init import TORCHVISION
 from clfbev.run.train_config import TrainConfig, check_resumable
 from clfbev.supervision.targets import Targets, TrainingCollate, training_loss
 
@@ -201,6 +203,9 @@ def start_state(cfg: ModelConfig, variant: str, tc: TrainConfig, device: torch.d
     where given, and its image features frozen with ``tc.image_freeze``) and its AdamW, or both
     as checkpoint ``ckpt`` (read from ``path``) left them, with the torch RNG state."""
     torch.manual_seed(tc.seed)
+    if tc.image_freeze and tc.image_init in (TORCHVISION, EFFICIENTNET_LITE0):
+        raise ConfigError(f"--image-freeze keeps the ResNet and FPN of an encoder checkpoint; --image-init "
+                          f"{tc.image_init} loads a backbone alone and would freeze a seeded FPN")
     model = CLFusionBEV(cfg, variant)
     if tc.image_init and ckpt is None:     # a resumed run's checkpoint already holds the encoder
         if model.camera_encoder is None:

@@ -104,8 +104,9 @@ class TrainConfig:
         "package, for cam_backbone: efficientnet_lite0) or '' (from scratch)", recipe=True, metavar="PATH"))
 
     image_freeze: bool = field(default=False, metadata=setting(
-        "keep the camera encoder's ResNet and FPN as --image-init gives them (no gradient, BatchNorm statistics "
-        "kept); its depth net and everything after it train", recipe=True))
+        "keep the camera encoder's ResNet and FPN as --image-init's encoder checkpoint gives them (no gradient, "
+        "BatchNorm statistics kept; not with a backbone-only start such as torchvision); its depth net and "
+        "everything after it train", recipe=True))
 
 
 # The fields that do not change the trained weights: a resume and the results table ignore them.

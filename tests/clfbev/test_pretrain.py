@@ -229,6 +229,8 @@ def test_bad_input_exits_2(dense_data, encoder_ckpt, micro, tmp_path):
                              encoder_ckpt, check=False), "lidar")
     _assert_bad_input(clfbev(*train[:-2], "--variant", "lidar", "--out", tmp_path / "r3b", "--image-freeze",
                              check=False), "--image-freeze", "lidar")
+    _assert_bad_input(clfbev(*train, "--out", tmp_path / "r3c", "--image-freeze", "--image-init", "torchvision",
+                             check=False), "--image-freeze", "torchvision", "seeded FPN")
     # A dataroot without dense labels: the missing file is named.
     bare = tmp_path / "bare"
     shutil.copytree(dense_data, bare, ignore=shutil.ignore_patterns("*_seg.png"))
