@@ -41,8 +41,8 @@ class ModelConfig:
     bands whose point counts per BEV cell join the lidar BEV, :mod:`clfbev.sweep_bev`; 0: none),
     ``sweep_offsets`` (each band's mean offset in its cell joins them too: a walker's sub-cell trail).
     Camera: ``cam_backbone`` (``resnet``, or ``efficientnet_lite0`` for the ImageNet experiment,
-    :mod:`clfbev.efficientnet_lite`), ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``, ``context_ch``, ``depth_bins``
-    (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``,
+    :mod:`clfbev.efficientnet_lite`), ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``,
+    ``context_ch``, ``depth_bins`` (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``,
     ``cam_semantic_lift`` (lift the perspective head's class probabilities with the context, so
     the camera BEV carries them; needs ``loss.semantic > 0``, see :mod:`clfbev.supervision.perspective`),
     ``cam_oracle_depth`` (a diagnostic, never a recipe: lift every camera cell that a key-frame
