@@ -48,6 +48,7 @@ from clfbev.run.efficientnet_init import EFFICIENTNET_LITE0
 from clfbev.run.epochs import EpochSamples, epoch_batches, precise_batchnorm
 from clfbev.run.evaluate import evaluate_model
 from clfbev.run.image_init import init_camera_encoder
+from clfbev.run.lidar_init import init_from_lidar_run
 from clfbev.run.run_log import ScalarLog, code_version, write_run_json
 from clfbev.run.torchvision_init import TORCHVISION
 from clfbev.run.train_config import TrainConfig, check_resumable
@@ -200,14 +201,19 @@ def load_training_data(data: str | Path, cfg: ModelConfig, tc: TrainConfig, rank
 def start_state(cfg: ModelConfig, variant: str, tc: TrainConfig, device: torch.device, ckpt: dict | None,
                 path: Path) -> TrainState:
     """The model seeded with ``tc.seed`` (its camera encoder then loaded from ``tc.image_init``
-    where given, and its image features frozen with ``tc.image_freeze``) and its AdamW, or both
-    as checkpoint ``ckpt`` (read from ``path``) left them, with the torch RNG state."""
+    where given, its lidar detector from ``tc.lidar_init``, and its image features frozen with
+    ``tc.image_freeze``) and its AdamW, or both as checkpoint ``ckpt`` (read from ``path``) left
+    them, with the torch RNG state."""
     torch.manual_seed(tc.seed)
     if tc.image_freeze and tc.image_init in (TORCHVISION, EFFICIENTNET_LITE0):
         raise ConfigError(f"--image-freeze keeps the ResNet and FPN of an encoder checkpoint; --image-init "
                           f"{tc.image_init} loads a backbone alone and would freeze a seeded FPN")
     model = CLFusionBEV(cfg, variant)
-    if tc.image_init and ckpt is None:     # a resumed run's checkpoint already holds the encoder
+    if tc.lidar_init and ckpt is None:     # a resumed run's checkpoint already holds the weights
+        if model.lidar_encoder is None:
+            raise ConfigError(f"--lidar-init {tc.lidar_init}: the variant '{variant}' has no lidar encoder")
+        print(f"clfbev train: {init_from_lidar_run(model, tc.lidar_init, cfg)}", file=sys.stderr)
+    if tc.image_init and ckpt is None:
         if model.camera_encoder is None:
             raise ConfigError(f"--image-init {tc.image_init}: the variant '{variant}' has no camera encoder")
         started = init_camera_encoder(model.camera_encoder, tc.image_init, cfg)

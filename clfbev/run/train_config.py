@@ -54,6 +54,8 @@ class TrainConfig:
     :data:`SHIPPED`, the one shipped in ``clfbev/weights/`` for the config's camera.
     ``image_freeze``: that encoder's ResNet and FPN stay fixed
     (:meth:`clfbev.camera_encoder.CameraEncoder.freeze_image_features`).
+    ``lidar_init``: the lidar encoder, BEV backbone and head start from a trained run's
+    checkpoint (:mod:`clfbev.run.lidar_init`).
     """
 
     train_split: str = field(default="sim-train", metadata=setting(
@@ -107,6 +109,10 @@ class TrainConfig:
         "keep the camera encoder's ResNet and FPN as --image-init's encoder checkpoint gives them (no gradient, "
         "BatchNorm statistics kept; not with a backbone-only start such as torchvision); its depth net and "
         "everything after it train", recipe=True))
+    lidar_init: str = field(default="", metadata=setting(
+        "start the lidar encoder, the BEV backbone and the head from a training checkpoint with a lidar "
+        "detector of this config, e.g. a lidar run's RUN/last.pt (not on --resume; BEVFusion's second stage: "
+        "the fusion keeps its seeded start, the camera encoder --image-init's)", metavar="PATH"))
 
 
 # The fields that do not change the trained weights: a resume and the results table ignore them.

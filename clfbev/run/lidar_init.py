@@ -1,0 +1,68 @@
+"""``clfbev train --lidar-init RUN/last.pt``: a run that starts from a trained run's lidar
+detector, BEVFusion's second stage.
+
+BEVFusion trains its fused detector in two stages: the lidar detector alone, then the whole
+fused model starting from the lidar detector's weights, with a pretrained image backbone. A
+fused model trained from scratch in one stage has to learn its lidar path and its fusion at
+once, and on a small budget it ends below the lidar detector (docs/benchmarks.md). Here the
+lidar encoder, the BEV backbone and the head load from a training checkpoint; the camera
+encoder keeps its own start (``--image-init``) and the fusion modules their seeded
+initialisation, under which a fused model is its lidar path (:mod:`clfbev.fusion`). Where the
+fused BEV is narrower than the lidar BEV (``tiny``: 64 against 69 channels) the backbone's
+first convolution cannot carry over and stays seeded; the log names what did not load.
+
+The same start serves the control a two-stage run is measured against: the lidar model itself
+started from its checkpoint and trained the same steps, so that both arms have had the same
+lidar training and differ only by the camera.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from torch import nn
+
+from clfbev.config import ModelConfig
+from clfbev.errors import CheckpointError
+from clfbev.run.checkpoint import config_of, load_checkpoint
+
+# The model config fields that decide what the lidar path and the head compute; a checkpoint
+# that differs in one of them holds weights for another detector, whatever their shapes.
+LIDAR_FIELDS = ("class_names", "pc_range", "n_sweeps", "voxel_size", "vfe_ch", "sparse_channels",
+                "lidar_bev_stride", "sparse_blocks", "sweep_bands", "sweep_offsets", "bev_channels",
+                "bev_blocks", "bev_up_ch", "anchor_rotations", "code_size", "n_dir_bins", "velocity_tower",
+                "velocity_detach", "velocity_gate")
+# Modules that must load whole, and the one that loads where its tensors fit.
+WHOLE = ("lidar_encoder", "head")
+FITTING = "backbone"
+
+
+def init_from_lidar_run(model: nn.Module, path: str | Path, cfg: ModelConfig) -> str:
+    """Load the lidar encoder, the head and every fitting backbone tensor of the training
+    checkpoint at ``path`` into ``model`` (a :class:`clfbev.model.CLFusionBEV` with a lidar
+    encoder, built from ``cfg``). Returns what was loaded, in words, for the log."""
+    path = Path(path)
+    ckpt = load_checkpoint(path)
+    theirs, mine = config_of(ckpt, path).to_dict(), cfg.to_dict()
+    diff = [k for k in LIDAR_FIELDS if theirs[k] != mine[k]]
+    if diff:
+        differs = ", ".join(f"{k} {theirs[k]} != {mine[k]}" for k in diff)
+        raise CheckpointError(f"--lidar-init {path}: trained for another lidar detector (differs in: {differs})")
+    weights = ckpt["model"]
+    want = model.state_dict()
+    take = {k: v for k, v in weights.items() if k.split(".")[0] in WHOLE}
+    whole = {k for k in want if k.split(".")[0] in WHOLE}
+    if set(take) != whole:
+        missing = sorted(whole - set(take))
+        raise CheckpointError(f"--lidar-init {path}: the checkpoint's variant '{ckpt['variant']}' has no lidar "
+                              f"detector to start from (missing {missing[:3]})")
+    seeded = []
+    for k, v in want.items():
+        if k.split(".")[0] == FITTING:
+            if k in weights and weights[k].shape == v.shape:
+                take[k] = weights[k]
+            else:
+                seeded.append(k)
+    model.load_state_dict(take, strict=False)
+    kept = f"; seeded: {', '.join(seeded)}" if seeded else ""
+    return f"lidar encoder, backbone and head from {path} (step {ckpt['step']}, variant {ckpt['variant']}){kept}"
