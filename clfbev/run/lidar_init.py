@@ -43,19 +43,36 @@ def init_from_lidar_run(model: nn.Module, path: str | Path, cfg: ModelConfig) ->
     encoder, built from ``cfg``). Returns what was loaded, in words, for the log."""
     path = Path(path)
     ckpt = load_checkpoint(path)
-    theirs, mine = config_of(ckpt, path).to_dict(), cfg.to_dict()
+    _check_lidar_fields(config_of(ckpt, path).to_dict(), cfg.to_dict(), path)
+    take, seeded = _lidar_tensors(ckpt, model.state_dict(), path)
+    model.load_state_dict(take, strict=False)
+    kept = f"; seeded: {', '.join(seeded)}" if seeded else ""
+    return f"lidar encoder, backbone and head from {path} (step {ckpt['step']}, variant {ckpt['variant']}){kept}"
+
+
+def _check_lidar_fields(theirs: dict, mine: dict, path: Path) -> None:
+    """Refuse a checkpoint whose config differs from ours in a field of LIDAR_FIELDS."""
     diff = [k for k in LIDAR_FIELDS if theirs[k] != mine[k]]
     if diff:
         differs = ", ".join(f"{k} {theirs[k]} != {mine[k]}" for k in diff)
         raise CheckpointError(f"--lidar-init {path}: trained for another lidar detector (differs in: {differs})")
+
+
+def _lidar_tensors(ckpt: dict, want: dict, path: Path) -> tuple[dict, list[str]]:
+    """({name: tensor} to load into a model whose state dict is ``want``: every tensor of the
+    WHOLE modules, checked by name and shape, and the FITTING module's that fit; [the FITTING
+    module's names left seeded])."""
     weights = ckpt["model"]
-    want = model.state_dict()
     take = {k: v for k, v in weights.items() if k.split(".")[0] in WHOLE}
     whole = {k for k in want if k.split(".")[0] in WHOLE}
-    if set(take) != whole:
-        missing = sorted(whole - set(take))
-        raise CheckpointError(f"--lidar-init {path}: the checkpoint's variant '{ckpt['variant']}' has no lidar "
-                              f"detector to start from (missing {missing[:3]})")
+    missing, extra = sorted(whole - set(take)), sorted(set(take) - whole)
+    if missing or extra:
+        raise CheckpointError(f"--lidar-init {path}: the lidar detector of the checkpoint's variant "
+                              f"'{ckpt['variant']}' does not fit (missing {missing[:3]}, unexpected {extra[:3]})")
+    bad = next((k for k in take if take[k].shape != want[k].shape), None)
+    if bad is not None:
+        raise CheckpointError(f"--lidar-init {path}: tensor '{bad}' has shape {tuple(take[bad].shape)}, "
+                              f"the model's is {tuple(want[bad].shape)}")
     seeded = []
     for k, v in want.items():
         if k.split(".")[0] == FITTING:
@@ -63,6 +80,4 @@ def init_from_lidar_run(model: nn.Module, path: str | Path, cfg: ModelConfig) ->
                 take[k] = weights[k]
             else:
                 seeded.append(k)
-    model.load_state_dict(take, strict=False)
-    kept = f"; seeded: {', '.join(seeded)}" if seeded else ""
-    return f"lidar encoder, backbone and head from {path} (step {ckpt['step']}, variant {ckpt['variant']}){kept}"
+    return take, seeded
