@@ -61,8 +61,6 @@ class ModelConfig:
     regressed on the moving boxes only, or with ``velocity_balance`` on all of them balanced, and
     decoded only where the gate fires,
     :func:`clfbev.supervision.losses.gated_velocity_loss`; needs ``velocity_tower``),
-    ``velocity_shared`` (the tower gives one velocity and gate per BEV cell, taken by every
-    class's anchors there, instead of one per anchor; needs ``velocity_tower``),
     ``heading_from_motion`` (m/s, >= 0: decoding turns a box's yaw by pi where it points against
     its predicted velocity and the predicted speed is above this; 0: off), ``score_thr``,
     ``nms_iou``, ``max_per_sample``, ``pre_nms``.
@@ -118,7 +116,6 @@ class ModelConfig:
     velocity_tower: int = 0
     velocity_detach: bool = False
     velocity_gate: bool = False
-    velocity_shared: bool = False
     heading_from_motion: float = 0.0
     score_thr: float = 0.1
     nms_iou: float = 0.2
@@ -150,9 +147,8 @@ class ModelConfig:
         for name, value in non_negative.items():
             if not value >= 0:
                 raise ConfigError(f"{name} must be >= 0, got {value}")
-        for name in ("velocity_gate", "velocity_shared"):
-            if getattr(self, name) and not self.velocity_tower:
-                raise ConfigError(f"{name} needs velocity_tower > 0")
+        if self.velocity_gate and not self.velocity_tower:
+            raise ConfigError("velocity_gate needs velocity_tower > 0")
         if not 1 <= self.min_positives <= 4:
             raise ConfigError(f"min_positives must be in [1, 4], got {self.min_positives}")
         if self.cam_backbone not in CAMERA_BACKBONES:

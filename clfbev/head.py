@@ -117,46 +117,35 @@ class VelocityTower(nn.Module):
     (:func:`clfbev.supervision.losses.gated_velocity_loss`); decoding keeps the regressed
     velocity only where the gate fires.
 
-    With ``shared`` it gives one velocity (and gate) per cell, which every anchor of the cell
-    takes: motion is a property of the points' trail, not of the class, and per class the rare
-    vehicles have a handful of moving instances to learn from (7 buses, 49 trucks in the
-    benchmark's training split) while cars have hundreds. CenterPoint shares its velocity
-    regression across the classes of a task head in the same way.
-
     Parameters
     ----------
     in_ch : channels of the backbone output plus the motion channels.
     n_anchors : anchors per cell.
     channels : width of the convolutions.
     gate : also predict the moving logit.
-    shared : one output per cell for all its anchors instead of one per anchor.
     """
 
     DILATIONS = (1, 2, 4)
 
-    def __init__(self, in_ch: int, n_anchors: int, channels: int, gate: bool = False, shared: bool = False) -> None:
+    def __init__(self, in_ch: int, n_anchors: int, channels: int, gate: bool = False) -> None:
         super().__init__()
         self.outputs = 3 if gate else 2
-        self.n_anchors = n_anchors
-        self.groups = 1 if shared else n_anchors
         self.reduce = nn.Sequential(nn.Conv2d(in_ch, channels, 1, bias=False),
                                     nn.BatchNorm2d(channels, eps=BN_EPS, momentum=BN_MOMENTUM), nn.ReLU(inplace=True))
         layers = conv_bn_relu(channels, channels, stride=2)
         for d in self.DILATIONS:
             layers += conv_bn_relu(channels, channels, dilation=d)
         self.coarse = nn.Sequential(*layers)
-        self.out = nn.Conv2d(2 * channels, self.groups * self.outputs, 1)
+        self.out = nn.Conv2d(2 * channels, n_anchors * self.outputs, 1)
         nn.init.normal_(self.out.weight, std=0.01)   # starts at 0 m/s, like the head's residuals
         nn.init.zeros_(self.out.bias)
 
     def forward(self, x: Tensor) -> Tensor:
-        """x (B, in_ch, H, W) -> (B, n_anchors, k, H, W): per anchor ``(vx, vy)`` or, with the
+        """x (B, in_ch, H, W) -> (B, n_anchors * k, H, W), anchor-major ``(vx, vy)`` or, with the
         gate, ``(vx, vy, moving logit)``."""
         fine = self.reduce(x)
         coarse = F.interpolate(self.coarse(fine), size=fine.shape[-2:], mode="nearest")
-        out = self.out(torch.cat([fine, coarse], dim=1))
-        b, _, h, w = out.shape
-        return out.view(b, self.groups, self.outputs, h, w).expand(b, self.n_anchors, self.outputs, h, w)
+        return self.out(torch.cat([fine, coarse], dim=1))
 
 
 class AnchorHead(nn.Module):
@@ -178,7 +167,6 @@ class AnchorHead(nn.Module):
     velocity_detach : the tower reads the BEV features without sending its gradient back into
         them, so the velocity loss cannot reshape the features the boxes are read from.
     velocity_gate : the tower also predicts whether each box moves (:class:`VelocityTower`).
-    velocity_shared : the tower predicts one velocity (and gate) per cell for all its anchors.
     """
 
     def __init__(
@@ -193,7 +181,6 @@ class AnchorHead(nn.Module):
         motion_ch: int = 0,
         velocity_detach: bool = False,
         velocity_gate: bool = False,
-        velocity_shared: bool = False,
     ) -> None:
         super().__init__()
         if velocity_tower and code_size != 9:
@@ -206,9 +193,7 @@ class AnchorHead(nn.Module):
         self.conv_cls = nn.Conv2d(in_ch, n_anchors, 1)
         self.conv_box = nn.Conv2d(in_ch, n_anchors * (7 if velocity_tower else code_size), 1)
         self.conv_dir = nn.Conv2d(in_ch, n_anchors * n_dir_bins, 1)
-        if velocity_shared and not velocity_tower:
-            raise ValueError("a shared velocity needs a velocity tower")
-        self.velocity = (VelocityTower(in_ch + motion_ch, n_anchors, velocity_tower, velocity_gate, velocity_shared)
+        self.velocity = (VelocityTower(in_ch + motion_ch, n_anchors, velocity_tower, velocity_gate)
                          if velocity_tower else None)
         self.velocity_detach = velocity_detach
         # Small weights: the first residuals are ~0 (boxes start at the anchors) and the first
@@ -227,7 +212,7 @@ class AnchorHead(nn.Module):
             tower_in = shared if motion is None else torch.cat([shared, motion], dim=1)
             b, _, h, w = box.shape
             n_anchors = self.n_classes * self.n_rot
-            tower = self.velocity(tower_in)                                  # (b, n_anchors, k, h, w)
+            tower = self.velocity(tower_in).view(b, n_anchors, self.velocity.outputs, h, w)
             box = torch.cat([box.view(b, n_anchors, 7, h, w), tower[:, :, :2]], dim=2).view(b, n_anchors * 9, h, w)
             if self.velocity.outputs == 3:
                 moving = tower[:, :, 2]

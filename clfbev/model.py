@@ -159,7 +159,7 @@ class CLFusionBEV(nn.Module):
         self.motion_ch = cfg.sweep_channels if uses_lidar and cfg.velocity_tower else 0
         self.head = AnchorHead(self.backbone.out_channels, len(cfg.class_names), len(cfg.anchor_rotations),
                                cfg.code_size, cfg.n_dir_bins, cfg.prior_prob, cfg.velocity_tower, self.motion_ch,
-                               cfg.velocity_detach, cfg.velocity_gate, cfg.velocity_shared)
+                               cfg.velocity_detach, cfg.velocity_gate)
         # For decoding; the training targets take theirs from the config (clfbev.supervision.targets).
         anchors = make_anchors(cfg.class_names, cfg.head_feature_size, cfg.pc_range, cfg.anchor_rotations)
         self.register_buffer("anchors", anchors, persistent=False)  # (ny, nx, n_cls, n_rot, 7)

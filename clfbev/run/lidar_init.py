@@ -31,7 +31,7 @@ from clfbev.run.checkpoint import config_of, load_checkpoint
 LIDAR_FIELDS = ("class_names", "pc_range", "n_sweeps", "voxel_size", "vfe_ch", "sparse_channels",
                 "lidar_bev_stride", "sparse_blocks", "sweep_bands", "sweep_offsets", "bev_channels",
                 "bev_blocks", "bev_up_ch", "anchor_rotations", "code_size", "n_dir_bins", "velocity_tower",
-                "velocity_detach", "velocity_gate", "velocity_shared")
+                "velocity_detach", "velocity_gate")
 # Modules that must load whole, and the one that loads where its tensors fit.
 WHOLE = ("lidar_encoder", "head")
 FITTING = "backbone"

@@ -164,22 +164,6 @@ def test_velocity_gate_is_the_towers_third_output():
         AnchorHead(in_ch=16, n_classes=3, velocity_gate=True)
 
 
-def test_shared_velocity_is_one_per_cell_for_every_anchor():
-    """``velocity_shared``: one (vx, vy, moving logit) per cell, the same for every class and
-    rotation there, from a convolution of 3 outputs instead of 3 per anchor; cells differ."""
-    torch.manual_seed(0)
-    head = AnchorHead(in_ch=16, n_classes=3, n_rot=2, code_size=9, velocity_tower=8, motion_ch=5,
-                      velocity_gate=True, velocity_shared=True).eval()
-    assert head.velocity.out.out_channels == 3
-    out = head(torch.randn(2, 16, 6, 7), torch.randn(2, 5, 6, 7))
-    vel = out.box_deltas.view(2, 6, 9, 6, 7)[:, :, 7:]
-    assert torch.equal(vel, vel[:, :1].expand_as(vel))
-    assert torch.equal(out.moving_logits, out.moving_logits[:, :1].expand(2, 6, 6, 7))
-    assert not torch.equal(vel[..., 0, 0], vel[..., 3, 4])
-    with pytest.raises(ValueError, match="shared velocity needs a velocity tower"):
-        AnchorHead(in_ch=16, n_classes=3, velocity_shared=True)
-
-
 def test_detached_velocity_tower_sends_no_gradient_into_the_bev():
     """``velocity_detach``: the velocity residuals give the BEV features no gradient (so the
     velocity loss cannot reshape what the boxes read) and still train the tower; the box
