@@ -86,6 +86,19 @@ def _check_fields(ckpt: dict, path: Path) -> None:
             raise CheckpointError(f"checkpoint {path}: field '{key}' is {ckpt[key]!r}, not a count")
 
 
+def check_tensors(weights: dict, want: dict, what: str) -> None:
+    """Refuse ``weights`` ({name: tensor}) unless it holds exactly the names of the state dict
+    ``want`` with their shapes: a CheckpointError that starts with ``what`` (the file, in words)
+    and names the first missing, unexpected or misshapen tensors."""
+    missing, extra = sorted(set(want) - set(weights)), sorted(set(weights) - set(want))
+    if missing or extra:
+        raise CheckpointError(f"{what} is of another architecture (missing {missing[:3]}, unexpected {extra[:3]})")
+    bad = next((k for k in want if weights[k].shape != want[k].shape), None)
+    if bad is not None:
+        raise CheckpointError(f"{what}: tensor '{bad}' has shape {tuple(weights[bad].shape)}, "
+                              f"the model's is {tuple(want[bad].shape)}")
+
+
 def config_of(ckpt: dict, path: str | Path) -> ModelConfig:
     """The :class:`ModelConfig` a checkpoint was trained with."""
     try:

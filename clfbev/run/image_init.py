@@ -32,7 +32,7 @@ from clfbev import io
 from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import ModelConfig
 from clfbev.errors import CheckpointError
-from clfbev.run.checkpoint import read_torch
+from clfbev.run.checkpoint import check_tensors, read_torch
 from clfbev.run.efficientnet_init import EFFICIENTNET_LITE0, load_efficientnet_backbone
 from clfbev.run.torchvision_init import TORCHVISION, load_torchvision_backbone
 from clfbev.run.train_config import SHIPPED
@@ -128,15 +128,6 @@ def load_image_init(encoder: nn.Module, path: str | Path, cfg: ModelConfig) -> d
     if diff:
         differs = ", ".join(f"{k} {theirs.get(k)} != {mine[k]}" for k in diff)
         raise CheckpointError(f"encoder checkpoint {path} was pretrained for another camera (differs in: {differs})")
-    want = encoder.state_dict()
-    weights = ckpt["encoder"]
-    missing, extra = sorted(set(want) - set(weights)), sorted(set(weights) - set(want))
-    if missing or extra:
-        raise CheckpointError(f"encoder checkpoint {path} is of another architecture (missing {missing[:3]}, "
-                              f"unexpected {extra[:3]})")
-    bad = next((k for k in want if weights[k].shape != want[k].shape), None)
-    if bad is not None:
-        raise CheckpointError(f"encoder checkpoint {path}: tensor '{bad}' has shape {tuple(weights[bad].shape)}, "
-                              f"the encoder's is {tuple(want[bad].shape)}")
-    encoder.load_state_dict(weights, strict=True)
+    check_tensors(ckpt["encoder"], encoder.state_dict(), f"encoder checkpoint {path}")
+    encoder.load_state_dict(ckpt["encoder"], strict=True)
     return ckpt

@@ -24,7 +24,7 @@ from torch import nn
 
 from clfbev.config import ModelConfig
 from clfbev.errors import CheckpointError
-from clfbev.run.checkpoint import config_of, load_checkpoint
+from clfbev.run.checkpoint import check_tensors, config_of, load_checkpoint
 
 # The model config fields that decide what the lidar path and the head compute; a checkpoint
 # that differs in one of them holds weights for another detector, whatever their shapes.
@@ -64,15 +64,8 @@ def _lidar_tensors(ckpt: dict, want: dict, path: Path) -> tuple[dict, list[str]]
     module's names left seeded])."""
     weights = ckpt["model"]
     take = {k: v for k, v in weights.items() if k.split(".")[0] in WHOLE}
-    whole = {k for k in want if k.split(".")[0] in WHOLE}
-    missing, extra = sorted(whole - set(take)), sorted(set(take) - whole)
-    if missing or extra:
-        raise CheckpointError(f"--lidar-init {path}: the lidar detector of the checkpoint's variant "
-                              f"'{ckpt['variant']}' does not fit (missing {missing[:3]}, unexpected {extra[:3]})")
-    bad = next((k for k in take if take[k].shape != want[k].shape), None)
-    if bad is not None:
-        raise CheckpointError(f"--lidar-init {path}: tensor '{bad}' has shape {tuple(take[bad].shape)}, "
-                              f"the model's is {tuple(want[bad].shape)}")
+    check_tensors(take, {k: v for k, v in want.items() if k.split(".")[0] in WHOLE},
+                  f"--lidar-init {path}: the lidar detector of the checkpoint's variant '{ckpt['variant']}'")
     seeded = []
     for k, v in want.items():
         if k.split(".")[0] == FITTING:

@@ -78,7 +78,7 @@ def test_refusals(lidar_state, tmp_path):
     with pytest.raises(CheckpointError, match=r"another lidar detector \(differs in: voxel_size"):
         _start("full", path, other)
     camera_only = {**lidar_state, "variant": "camera", "model": CLFusionBEV(MICRO, "camera").state_dict()}
-    with pytest.raises(CheckpointError, match="variant 'camera' does not fit"):
+    with pytest.raises(CheckpointError, match="variant 'camera' is of another architecture"):
         _start("full", save_checkpoint(tmp_path / "camera.pt", camera_only))
 
 
