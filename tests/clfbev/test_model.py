@@ -164,7 +164,7 @@ def test_derived_sizes_match_real_shapes(variant):
         assert bev.shape == (1, cfg.bev_channels_of(variant), ny, nx)
         feats = model.backbone(bev)
         assert feats.shape == (1, cfg.head_in_channels, ny, nx)
-        out = model.head(feats)
+        out = model(batch).head
     A = len(cfg.class_names) * len(cfg.anchor_rotations)
     assert out.cls_logits.shape == (1, A, ny, nx)
     assert out.box_deltas.shape == (1, A * cfg.code_size, ny, nx)
@@ -178,7 +178,7 @@ def test_velocity_tower_trains_and_reads_the_sweep_bands(variant):
     channels of the lidar BEV (the camera variant has none)."""
     cfg = replace(tiny(), velocity_tower=8)
     model = CLFusionBEV(cfg, variant)
-    assert model.motion_ch == (0 if variant == "camera" else cfg.sweep_bands)
+    assert model.motion_ch == (0 if variant == "camera" else cfg.sweep_channels)
     assert model.head.velocity.reduce[0].in_channels == cfg.head_in_channels + model.motion_ch
     batch = make_batch(cfg)
     opt = torch.optim.SGD(model.parameters(), lr=1e-3)
@@ -266,8 +266,8 @@ def test_derived_sizes_equal_the_modules_own(cfg):
     with torch.device("meta"):   # no memory, no init cost
         sparse = SparseEncoder(cfg.vfe_ch, cfg.sparse_channels, cfg.lidar_grid_shape, cfg.sparse_blocks,
                                xy_stride=cfg.lidar_bev_stride)
-        assert (sparse.out_size(), sparse.out_channels + cfg.sweep_bands) == (cfg.lidar_bev_shape,
-                                                                               cfg.lidar_bev_channels)
+        assert (sparse.out_size(), sparse.out_channels + cfg.sweep_channels) == (cfg.lidar_bev_shape,
+                                                                                  cfg.lidar_bev_channels)
         for variant in VARIANTS:
             model = CLFusionBEV(cfg, variant)
             if model.lidar_encoder is not None:
