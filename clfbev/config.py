@@ -143,7 +143,7 @@ class ModelConfig:
             if not all(v > 0 for v in values):
                 raise ConfigError(f"{name} must be > 0, got {values}")
         non_negative = {"heading_from_motion": self.heading_from_motion, "velocity_beta": self.velocity_beta,
-                        "velocity_weight": self.velocity_weight}
+                        "velocity_weight": self.velocity_weight, "loss.depth_range_power": self.loss.depth_range_power}
         for name, value in non_negative.items():
             if not value >= 0:
                 raise ConfigError(f"{name} must be >= 0, got {value}")

@@ -8,7 +8,7 @@ once, and on a small budget it ends below the lidar detector (docs/benchmarks.md
 lidar encoder, the BEV backbone and the head load from a training checkpoint; the camera
 encoder keeps its own start (``--image-init``) and the fusion modules their seeded
 initialisation, under which a fused model is its lidar path (:mod:`clfbev.fusion`). Where the
-fused BEV is narrower than the lidar BEV (``tiny``: 64 against 69 channels) the backbone's
+fused BEV is narrower than the lidar BEV (``tiny``: 64 against 79 channels) the backbone's
 first convolution cannot carry over and stays seeded; the log names what did not load.
 
 The same start serves the control a two-stage run is measured against: the lidar model itself

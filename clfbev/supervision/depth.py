@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from clfbev.camera_encoder import CameraGeometry
+from clfbev.camera_encoder import CameraGeometry, depth_bin_centres
 
 
 def nearest_lidar_points(
@@ -98,14 +98,19 @@ def bins_of(depth: Tensor, depth_bins: tuple[float, float, float]) -> Tensor:
     return torch.where(torch.isfinite(depth), bins, -1.0).long()
 
 
-def depth_loss(depth_probs: Tensor, targets: Tensor) -> Tensor:
+def depth_loss(depth_probs: Tensor, targets: Tensor, depth_bins: tuple[float, float, float] | None = None,
+               range_power: float = 0.0) -> Tensor:
     """BEVDepth's loss: BCE of the predicted distribution against the one-hot target bin,
-    summed over bins, averaged over the cells with a target.
+    summed over bins, averaged over the cells with a target; with ``range_power`` p > 0 a
+    weighted mean, each cell weighing (its target bin's depth)^p, the weights normalised to a
+    mean of 1 (so the loss keeps its scale).
 
     Parameters
     ----------
     depth_probs : (B, N, D, h, w) softmax over D bins.
     targets : (B, N, h, w) int64 bin, -1 = no target.
+    depth_bins : (d_min, d_max, d_step) of the bins (their centres give the weights); needed
+        when ``range_power`` > 0.
 
     Returns
     -------
@@ -119,5 +124,10 @@ def depth_loss(depth_probs: Tensor, targets: Tensor) -> Tensor:
     with torch.autocast(device_type=probs.device.type, enabled=False):
         p = probs[fg].float()
         onehot = F.one_hot(t[fg], D).float()
-        total = F.binary_cross_entropy(p, onehot, reduction="sum")
+        if range_power > 0 and len(p):
+            weight = depth_bin_centres(depth_bins).to(p.device)[t[fg]] ** range_power      # (n,)
+            per_cell = F.binary_cross_entropy(p, onehot, reduction="none").sum(dim=1)
+            total = (per_cell * (weight / weight.mean())).sum()
+        else:
+            total = F.binary_cross_entropy(p, onehot, reduction="sum")
     return total / max(1, int(fg.sum()))

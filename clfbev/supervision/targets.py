@@ -112,7 +112,7 @@ def training_loss(outputs: ModelOutputs, targets: Targets, cfg: ModelConfig) -> 
                             cfg.velocity_weight)
     if outputs.depth is None:
         return losses
-    losses["loss_depth"] = depth_loss(outputs.depth, targets.depth)
+    losses["loss_depth"] = depth_loss(outputs.depth, targets.depth, cfg.depth_bins, cfg.loss.depth_range_power)
     if outputs.semantics is not None:
         losses["loss_semantic"] = semantic_loss(outputs.semantics, targets.semantic, cfg.loss.focal_alpha,
                                                 cfg.loss.focal_gamma)

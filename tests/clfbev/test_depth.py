@@ -12,6 +12,7 @@ from clfbev.augment import image_matrix
 from clfbev.camera_encoder import CameraEncoder, CameraGeometry, lift_geometry, oracle_depth, splat
 from clfbev.config import tiny
 from clfbev.data import NuScenesDetection, collate, resize_and_crop
+from clfbev.errors import ConfigError
 from clfbev.model import CLFusionBEV
 from clfbev.supervision.depth import depth_loss, depth_targets
 from clfbev.supervision.targets import build_targets
@@ -113,6 +114,11 @@ def test_the_model_lifts_with_the_cells_the_depth_loss_trains(tiny_dataset):
     assert not torch.allclose(oracle_bev, predicted_bev)
 
 
+def expected_cell(p: torch.Tensor, k: int) -> torch.Tensor:
+    """BEVDepth's BCE of one cell's (D,) distribution against the one-hot bin k, summed over bins."""
+    return -(torch.log(p[k]) + torch.log(1 - p).sum() - torch.log(1 - p[k]))
+
+
 def test_depth_loss_is_bevdepths_bce_and_decreases_in_training():
     torch.manual_seed(0)
     probs = torch.softmax(torch.randn(1, 2, 5, 3, 4), dim=2)
@@ -123,6 +129,14 @@ def test_depth_loss_is_bevdepths_bce_and_decreases_in_training():
                  + torch.log(1 - probs[0, 1, :, 0, 0]).sum() - torch.log(1 - probs[0, 1, 0, 0, 0])) / 2
     torch.testing.assert_close(depth_loss(probs, t), expected)
     assert depth_loss(probs, torch.full_like(t, -1)) == 0
+
+    # Weighted by the target's depth (bins of 1 m from 1 m: centres 4.5 m and 1.5 m), normalised
+    # to a mean weight of 1; each cell's summed BCE as above.
+    cell = torch.stack([expected_cell(probs[0, 0, :, 1, 2], 3), expected_cell(probs[0, 1, :, 0, 0], 0)])
+    weight = torch.tensor([4.5, 1.5]) ** 2
+    torch.testing.assert_close(depth_loss(probs, t, (1.0, 6.0, 1.0), 2.0),
+                               (cell * weight / weight.mean()).sum() / 2)
+    torch.testing.assert_close(depth_loss(probs, t, (1.0, 6.0, 1.0), 0.0), expected)
 
     # A small camera encoder fitting the depth of two images: the loss falls.
     enc = CameraEncoder(18, 8, 16, BINS, 8, (64, 176), 8, (-51.2, -51.2, -5.0, 51.2, 51.2, 3.0), (0.8, 0.8, 8.0))
@@ -155,3 +169,8 @@ def test_the_vfe_gets_at_least_95_percent_of_a_multi_sweep_sample(tiny_dataset, 
         model.lidar_encoder([torch.from_numpy(sample.points)])
     assert seen[0] >= 0.95 * len(sample.points)
     assert seen[0] == len(sample.points)          # in range (the loader crops) and under max_voxels
+
+
+def test_depth_range_power_must_not_be_negative():
+    with pytest.raises(ConfigError, match="loss.depth_range_power"):
+        replace(tiny(), loss=replace(tiny().loss, depth_range_power=-1.0))
