@@ -59,6 +59,13 @@ class CameraGeometry(NamedTuple):
     feature_stride: int
     depth_bins: tuple[float, float, float]
 
+    @classmethod
+    def of_batch(cls, batch, cfg) -> "CameraGeometry":
+        """The cameras of a :class:`clfbev.data.Batch` as the model of ``cfg`` (a
+        :class:`clfbev.config.ModelConfig`) sees them."""
+        return cls(batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug, cfg.image_size, cfg.feature_stride,
+                   cfg.depth_bins)
+
 
 def depth_bin_centres(depth_bins: tuple[float, float, float]) -> Tensor:
     """(D,) float32 depths (m, camera z) of the bins of ``(d_min, d_max, d_step)``, at bin centres."""

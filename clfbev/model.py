@@ -195,8 +195,7 @@ class CLFusionBEV(nn.Module):
         if not self.cfg.cam_oracle_depth:
             return None
         cfg = self.cfg
-        cams = CameraGeometry(batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug, cfg.image_size,
-                              cfg.feature_stride, cfg.depth_bins)
+        cams = CameraGeometry.of_batch(batch, cfg)
         return depth_targets(batch.points, cams, batch.pasted or None)
 
     def fuse(self, lidar_bev: Tensor, cam_bev: Tensor) -> tuple[Tensor, AttentionInputs]:

@@ -122,8 +122,7 @@ def build_dense_targets(batch: Batch, depth: np.ndarray, seg: np.ndarray, cfg: M
     """The targets of ``batch`` with dense labels depth (B, N, H, W) metres and seg (B, N, H, W)."""
     bins, classes = cell_depth_and_class(torch.from_numpy(depth), torch.from_numpy(seg), cfg.feature_stride,
                                          cfg.depth_bins)
-    cams = CameraGeometry(batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug, cfg.image_size,
-                          cfg.feature_stride, cfg.depth_bins)
+    cams = CameraGeometry.of_batch(batch, cfg)
     heatmap, centres, codes = centre_targets(batch.gt_boxes, batch.gt_labels, cams, len(cfg.class_names))
     return DenseTargets(bins, classes, heatmap, centres, codes)
 

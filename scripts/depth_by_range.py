@@ -33,8 +33,7 @@ def bin_errors(model, dataset, every: int) -> tuple[np.ndarray, np.ndarray]:
     with torch.no_grad():
         for i in range(0, len(dataset), every):
             batch = collate([dataset[i]])
-            cams = CameraGeometry(batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug, cfg.image_size,
-                                  cfg.feature_stride, cfg.depth_bins)
+            cams = CameraGeometry.of_batch(batch, cfg)
             target = depth_targets(batch.points, cams)                    # (1, N, h, w), -1: none
             predicted = model(batch).depth.argmax(dim=2)                  # (1, N, h, w)
             seen = target >= 0

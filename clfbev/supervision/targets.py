@@ -65,8 +65,7 @@ def build_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool
     ])
     if not cameras:
         return Targets(anchor)
-    cams = CameraGeometry(batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug, cfg.image_size,
-                          cfg.feature_stride, cfg.depth_bins)
+    cams = CameraGeometry.of_batch(batch, cfg)
     # Pasted points have no pixels: they are no camera's target.
     depth, nearest = nearest_lidar_points(batch.points, cams, batch.pasted or None)
     semantic = None

@@ -26,8 +26,7 @@ class TargetDepth:
 
     def __call__(self, batch):
         cfg = self.cfg
-        cams = CameraGeometry(batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug, cfg.image_size,
-                              cfg.feature_stride, cfg.depth_bins)
+        cams = CameraGeometry.of_batch(batch, cfg)
         target = depth_targets(batch.points, cams)                            # (1, N, h, w)
         D = cfg.num_depth_bins
         moved = (target + self.shift).clamp(max=D - 1)
