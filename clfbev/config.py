@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 
 from clfbev.errors import ConfigError
 from clfbev.settings import (ANCHOR_ROTATIONS, ANCHOR_SIZES, ATTENTION_MODES, CAMERA_BACKBONES, DETECTION_CLASSES,
-                             LIDAR_SWEEP_PERIOD_S, POINT_CH, DataConfig, LossWeights, conv_out_size, grid_shape_of)
+                             LIDAR_SWEEP_PERIOD_S, POINT_CH, TRAIL_WINDOWS, DataConfig, LossWeights, conv_out_size,
+                             grid_shape_of)
 
 VARIANTS = ("lidar", "camera", "concat", "mcm", "full")
 
@@ -39,7 +40,10 @@ class ModelConfig:
     ``lidar_bev_stride`` (the x/y stride of the lidar BEV over the voxels: the first
     log2(stride) downsamplings also halve x and y), ``sparse_blocks``, ``sweep_bands`` (lag
     bands whose point counts per BEV cell join the lidar BEV, :mod:`clfbev.sweep_bev`; 0: none),
-    ``sweep_offsets`` (each band's mean offset in its cell joins them too: a walker's sub-cell trail).
+    ``sweep_offsets`` (each band's mean offset in its cell joins them too: a walker's sub-cell trail),
+    ``sweep_trail`` (each cell's least-squares velocity of its points above ``sweep_trail_min_z``,
+    m in the lidar frame, over the cell and its 3x3 neighbourhood joins them too,
+    :func:`clfbev.sweep_bev.sweep_trails`).
     Camera: ``cam_backbone`` (``resnet``, or ``efficientnet_lite0`` for the ImageNet experiment,
     :mod:`clfbev.efficientnet_lite`), ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``,
     ``context_ch``, ``depth_bins`` (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``,
@@ -62,7 +66,9 @@ class ModelConfig:
     decoded only where the gate fires,
     :func:`clfbev.supervision.losses.gated_velocity_loss`; needs ``velocity_tower``),
     ``heading_from_motion`` (m/s, >= 0: decoding turns a box's yaw by pi where it points against
-    its predicted velocity and the predicted speed is above this; 0: off), ``score_thr``,
+    its predicted velocity and the predicted speed is above this; 0: off),
+    ``heading_follow_classes`` (class names whose yaw is instead set to the predicted velocity's
+    direction above that speed: a walker's near-square footprint shows no axis), ``score_thr``,
     ``nms_iou``, ``max_per_sample``, ``pre_nms``.
     Loss: ``loss``; ``velocity_balance`` (the velocity residuals leave the shared box loss for
     their own, in which the moving and the still positives weigh the same in total,
@@ -85,6 +91,8 @@ class ModelConfig:
     sparse_blocks: int = 1
     sweep_bands: int = 0
     sweep_offsets: bool = False
+    sweep_trail: bool = False
+    sweep_trail_min_z: float = -1.4      # 0.44 m above the road under a lidar 1.84 m up (the rig's)
     # camera
     cam_backbone: str = "resnet"
     cam_depth: int = 18
@@ -117,6 +125,7 @@ class ModelConfig:
     velocity_detach: bool = False
     velocity_gate: bool = False
     heading_from_motion: float = 0.0
+    heading_follow_classes: tuple[str, ...] = ()
     score_thr: float = 0.1
     nms_iou: float = 0.2
     max_per_sample: int = 500
@@ -147,6 +156,9 @@ class ModelConfig:
         for name, value in non_negative.items():
             if not value >= 0:
                 raise ConfigError(f"{name} must be >= 0, got {value}")
+        stray = [c for c in self.heading_follow_classes if c not in self.class_names]
+        if stray:
+            raise ConfigError(f"heading_follow_classes {stray} are not in class_names {list(self.class_names)}")
         if self.velocity_gate and not self.velocity_tower:
             raise ConfigError("velocity_gate needs velocity_tower > 0")
         if not 1 <= self.min_positives <= 4:
@@ -159,8 +171,8 @@ class ModelConfig:
             raise ConfigError(f"fusion_dim {self.fusion_dim} must be divisible by attn_heads {self.attn_heads} and 4")
         if self.feature_stride not in (8, 16) or any(s % self.feature_stride for s in self.image_size):
             raise ConfigError(f"image_size {self.image_size} must be a multiple of feature_stride (8 or 16)")
-        if self.sweep_offsets and not self.sweep_bands > 0:
-            raise ConfigError("sweep_offsets needs sweep_bands > 0 (the offsets are the bands')")
+        if (self.sweep_offsets or self.sweep_trail) and not self.sweep_bands > 0:
+            raise ConfigError("sweep_offsets and sweep_trail need sweep_bands > 0 (they join the bands)")
         if self.cam_semantic_lift and not self.loss.semantic > 0:
             raise ConfigError("cam_semantic_lift needs the perspective head: set loss.semantic > 0")
         if len(self.loss.code_weights) < self.code_size:
@@ -204,8 +216,9 @@ class ModelConfig:
 
     @property
     def sweep_channels(self) -> int:
-        """The sweep bands' channels: a count per band, and its x and y offsets with ``sweep_offsets``."""
-        return self.sweep_bands * (3 if self.sweep_offsets else 1)
+        """The sweep bands' channels: a count per band, its x and y offsets with ``sweep_offsets``,
+        and with ``sweep_trail`` the fitted ``vx, vy`` per trail window."""
+        return self.sweep_bands * (3 if self.sweep_offsets else 1) + (2 * len(TRAIL_WINDOWS) if self.sweep_trail else 0)
 
     @property
     def cam_bev_voxel(self) -> tuple[float, float, float]:

@@ -253,17 +253,24 @@ def correct_direction(yaw: Tensor, dir_bin: Tensor, dir_offset: float = DIR_OFFS
     return limit_period(yaw - dir_offset, 0.0, period) + dir_offset + period * dir_bin.to(yaw.dtype)
 
 
-def heading_from_motion(boxes: Tensor, min_speed: float, dir_offset: float = DIR_OFFSET) -> Tensor:
+def heading_from_motion(boxes: Tensor, min_speed: float, dir_offset: float = DIR_OFFSET,
+                        follow: Tensor | None = None) -> Tensor:
     """(K,) the yaw of ``boxes`` (K, >= 9) ``x, y, z, l, w, h, yaw, vx, vy`` (lidar frame),
-    turned by pi where the box moves faster than ``min_speed`` m/s against its heading.
+    turned by pi where the box moves faster than ``min_speed`` m/s against its heading, and set
+    to the velocity's direction where it moves that fast and ``follow`` (K,) bool is True.
 
     A vehicle, cycle or walker moves forwards: where the velocity, read from the sweeps' trail,
     is clearly above noise it tells front from back better than the direction bin, which sees
-    a near-symmetric shape. Kept in ``[dir_offset, dir_offset + 2 pi)``."""
+    a near-symmetric shape. A walker's near-square footprint does not even show its axis, so
+    for the classes of ``follow`` the velocity gives the whole heading. Kept in
+    ``[dir_offset, dir_offset + 2 pi)``."""
     yaw, vx, vy = boxes[:, 6], boxes[:, 7], boxes[:, 8]
+    moving = torch.hypot(vx, vy) > min_speed
     against = (torch.cos(yaw) * vx + torch.sin(yaw) * vy) < 0
-    turn = against & (torch.hypot(vx, vy) > min_speed)
-    return limit_period(torch.where(turn, yaw + math.pi, yaw) - dir_offset, 0.0, 2.0 * math.pi) + dir_offset
+    yaw = torch.where(moving & against, yaw + math.pi, yaw)
+    if follow is not None:
+        yaw = torch.where(moving & follow, torch.atan2(vy, vx), yaw)
+    return limit_period(yaw - dir_offset, 0.0, 2.0 * math.pi) + dir_offset
 
 
 @torch.no_grad()
@@ -279,6 +286,7 @@ def decode(
     dir_offset: float = DIR_OFFSET,
     heading_speed: float = 0.0,
     moving_logits: Tensor | None = None,
+    heading_follow: tuple[int, ...] = (),
 ) -> list[Detections]:
     """Head maps -> boxes in the lidar frame, per sample.
 
@@ -297,6 +305,8 @@ def decode(
     dir_offset : start of the direction bins, as in training.
     heading_speed : m/s; above it a box's heading follows its predicted velocity
         (:func:`heading_from_motion`); 0: off.
+    heading_follow : class indices whose heading is set to the predicted velocity's direction
+        above ``heading_speed`` (the others' is only turned by pi).
     moving_logits : (B, A, H, W) the velocity gate's logits, or None: where given, a box whose
         gate says still (logit < 0) gets velocity 0, whatever was regressed.
 
@@ -322,9 +332,10 @@ def decode(
         boxes = decode_boxes(deltas, flat_anchors[top])
         dir_bin = flat.dir_logits[b, top].argmax(dim=-1)
         boxes[:, 6] = correct_direction(boxes[:, 6], dir_bin, dir_offset, n_bins)
-        if heading_speed > 0 and boxes.shape[1] >= 9:
-            boxes[:, 6] = heading_from_motion(boxes, heading_speed, dir_offset)
         labels = class_ids[top]
+        if heading_speed > 0 and boxes.shape[1] >= 9:
+            follow = torch.isin(labels, torch.tensor(heading_follow, dtype=labels.dtype, device=labels.device))
+            boxes[:, 6] = heading_from_motion(boxes, heading_speed, dir_offset, follow)
 
         # Per-class NMS: a car and a pedestrian may overlap in BEV (a person next to a door).
         kept = [top.new_zeros(0)]

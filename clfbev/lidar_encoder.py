@@ -26,7 +26,7 @@ from clfbev.layers import BN_EPS, BN_MOMENTUM
 from clfbev.ops.sparse_conv import SparseConv3d, SparseTensor, SubMConv3d, subm_rulebook
 from clfbev.ops.voxelize import voxelize
 from clfbev.settings import conv_out_size, grid_shape_of
-from clfbev.sweep_bev import sweep_occupancy
+from clfbev.sweep_bev import TRAIL_WINDOWS, sweep_occupancy, sweep_trails
 
 Triple = tuple[int, int, int]
 
@@ -273,7 +273,8 @@ def _block(conv: nn.Module, norm: nn.Module, x: SparseTensor, rulebook=None) -> 
 class LidarEncoder(nn.Module):
     """Points (lidar frame) -> lidar BEV: ``voxelize`` -> ``VFE`` -> ``SparseEncoder``, and with
     ``sweep_bands`` the per-band point counts of :func:`clfbev.sweep_bev.sweep_occupancy` (and
-    with ``sweep_offsets`` their mean offsets in the cell) as further channels.
+    with ``sweep_offsets`` their mean offsets in the cell, with ``trail_min_z`` the cells' fitted
+    trails of :func:`clfbev.sweep_bev.sweep_trails`) as further channels.
 
     Parameters
     ----------
@@ -287,6 +288,8 @@ class LidarEncoder(nn.Module):
     vfe_norm, time_lag_span : see ``VFE``.
     sweep_bands : lag bands counted per BEV cell (0: none).
     sweep_offsets : the bands' mean offsets in their cells follow the counts (2 channels a band).
+    trail_min_z : m, lidar frame, or None: the fitted trails of the points above it follow
+        (``2 * len(TRAIL_WINDOWS)`` channels, m/s); None: no trails.
     """
 
     def __init__(
@@ -304,11 +307,14 @@ class LidarEncoder(nn.Module):
         time_lag_span: float = 1.0,
         sweep_bands: int = 0,
         sweep_offsets: bool = False,
+        trail_min_z: float | None = None,
     ) -> None:
         super().__init__()
         self.point_ch = point_ch
         self.time_lag_span, self.sweep_bands, self.sweep_offsets = time_lag_span, sweep_bands, sweep_offsets
-        self.sweep_channels = sweep_bands * (3 if sweep_offsets else 1)
+        self.trail_min_z = trail_min_z
+        trail_ch = 2 * len(TRAIL_WINDOWS) if trail_min_z is not None else 0
+        self.sweep_channels = sweep_bands * (3 if sweep_offsets else 1) + trail_ch
         self.pc_range, self.voxel_size = tuple(pc_range), tuple(voxel_size)
         self.max_voxels = max_voxels
         self.grid_shape = grid_shape_of(self.pc_range, self.voxel_size)  # (nz, ny, nx)
@@ -383,4 +389,7 @@ class LidarEncoder(nn.Module):
             return LidarFeatures(bev, None)
         bands = sweep_occupancy(points, batch_idx, batch_size, self.pc_range, (ny, nx), self.sweep_bands,
                                 self.time_lag_span, self.sweep_offsets).to(bev.dtype)
+        if self.trail_min_z is not None:
+            trails = sweep_trails(points, batch_idx, batch_size, self.pc_range, (ny, nx), self.trail_min_z)
+            bands = torch.cat([bands, trails.to(bev.dtype)], dim=1)
         return LidarFeatures(torch.cat([bev, bands], dim=1), bands)

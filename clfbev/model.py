@@ -134,7 +134,7 @@ class CLFusionBEV(nn.Module):
                 cfg.point_ch, cfg.vfe_ch, cfg.sparse_channels, cfg.pc_range, cfg.voxel_size,
                 cfg.max_voxels, cfg.sparse_blocks, xy_stride=cfg.lidar_bev_stride,
                 time_lag_span=cfg.time_lag_span, sweep_bands=cfg.sweep_bands,
-                sweep_offsets=cfg.sweep_offsets,
+                sweep_offsets=cfg.sweep_offsets, trail_min_z=cfg.sweep_trail_min_z if cfg.sweep_trail else None,
             )
         if uses_camera:
             self.camera_encoder = CameraEncoder.from_config(cfg)
@@ -241,6 +241,7 @@ class CLFusionBEV(nn.Module):
             nms_iou=cfg.nms_iou if nms_iou is None else nms_iou,
             max_per_sample=cfg.max_per_sample if max_per_sample is None else max_per_sample,
             pre_nms=cfg.pre_nms, heading_speed=cfg.heading_from_motion, moving_logits=out.moving_logits,
+            heading_follow=tuple(cfg.class_names.index(c) for c in cfg.heading_follow_classes),
         )
 
 

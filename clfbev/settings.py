@@ -50,6 +50,9 @@ CAMERA_BACKBONES = ("resnet", "efficientnet_lite0")
 POINT_CH = 5
 # The lidar turns at 20 Hz (nuScenes and the HDL-32E alike): consecutive sweeps are 0.05 s apart.
 LIDAR_SWEEP_PERIOD_S = 0.05
+# Cells a side of the windows each BEV cell's sweep trail is fitted over (clfbev.sweep_bev): the
+# cell alone (a walker), and its 3x3 neighbourhood (a walker crossing cells, a cyclist).
+TRAIL_WINDOWS = (1, 3)
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,8 @@ import pytest
 import torch
 
 from clfbev.anchors import MATCH_THRESHOLDS, anchor_class_ids, make_anchors, match_thresholds
+from clfbev.config import ModelConfig
+from clfbev.errors import ConfigError
 from clfbev.settings import ANCHOR_SIZES, DETECTION_CLASSES, LossWeights
 from clfbev.supervision.assign import AnchorTargets, assign_targets, stack_targets
 from clfbev.head import AnchorHead, FlatPredictions, HeadOutput, decode, direction_target, heading_from_motion
@@ -783,3 +785,42 @@ def test_heading_follows_a_clear_velocity():
     expected = torch.tensor([0.2 + math.pi, 0.2, 2.0, 3.0 - math.pi])
     torch.testing.assert_close(yaw, expected)
     assert (yaw >= -math.pi / 4).all() and (yaw < 7 * math.pi / 4).all()
+
+
+def test_heading_of_a_following_class_is_its_velocitys_direction():
+    """A walker (``follow``) moving faster than the threshold takes its velocity's direction
+    whatever its yaw said, across the axis too; slower it keeps its yaw; a car beside it in
+    the same call is only turned by pi."""
+    boxes = torch.tensor([[0, 0, 0, 0.7, 0.7, 1.7, 0.3, 0.0, 1.4],     # walker, across its yaw: set
+                          [0, 0, 0, 0.7, 0.7, 1.7, 0.3, 0.0, 0.4],     # walker, slow: keeps
+                          [0, 0, 0, 4.5, 1.9, 1.5, 0.2, -5.0, -1.0]])  # car, against: turns by pi
+    follow = torch.tensor([True, True, False])
+    yaw = heading_from_motion(boxes, 1.0, dir_offset=-math.pi / 4, follow=follow)
+    torch.testing.assert_close(yaw, torch.tensor([math.pi / 2, 0.3, 0.2 + math.pi]))
+
+
+def test_decode_sets_the_heading_of_the_named_classes_only():
+    """Through decode: one walker anchor and one car anchor, both moving along -x at 2 m/s with
+    yaw 0 regressed; with ``heading_follow`` naming the walker's class both end up at pi (the
+    walker set, the car turned), and at 1 m/s threshold 3 m/s both keep yaw 0."""
+    n_cls, ny, nx = 2, 1, 2
+    anchors = torch.zeros(ny, nx, n_cls, 1, 7)
+    anchors[..., 3:6] = torch.tensor([1.0, 1.0, 1.0])
+    anchors[0, 1, :, :, 0] = 10.0                                      # the second cell 10 m away
+    cls = torch.full((1, n_cls, ny, nx), -10.0)
+    cls[0, 0, 0, 0] = cls[0, 1, 0, 1] = 5.0                             # car at cell 0, walker at cell 1
+    deltas = torch.zeros(1, n_cls * 9, ny, nx)
+    deltas[0, 7::9] = -2.0                                              # vx: -2 m/s (not scaled by the anchor)
+    dirs = torch.zeros(1, n_cls * 2, ny, nx)
+    dirs[0, 0::2] = 5.0                                                 # direction bin 0: yaw 0
+    for speed, expected in ((1.0, math.pi), (3.0, 0.0)):
+        det, = decode(cls, deltas, dirs, anchors, score_thr=0.5, dir_offset=-math.pi / 4,
+                      heading_speed=speed, heading_follow=(1,))
+        assert sorted(det.labels.tolist()) == [0, 1]
+        torch.testing.assert_close(det.boxes[:, 6], torch.full((2,), expected))
+
+
+def test_heading_follow_classes_must_be_detected_classes():
+    assert ModelConfig(heading_follow_classes=("pedestrian",)).heading_follow_classes == ("pedestrian",)
+    with pytest.raises(ConfigError, match=r"heading_follow_classes \['walker'\]"):
+        ModelConfig(heading_follow_classes=("walker",))

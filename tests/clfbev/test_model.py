@@ -229,7 +229,8 @@ def test_load_config(tmp_path):
         "loss: {depth: -.inf}\n": r"bad\.yaml: key 'loss\.depth' must be a finite number",
         "voxel_size: [0.0, 0.4, 0.4]\n": r"bad\.yaml: voxel_size must be > 0",
         "voxel_size: [300.0, 0.4, 0.4]\n": r"bad\.yaml: .*empty voxel grid",
-        "sweep_bands: 0\nsweep_offsets: true\n": r"bad\.yaml: sweep_offsets needs sweep_bands > 0",
+        "sweep_bands: 0\nsweep_offsets: true\n": r"bad\.yaml: sweep_offsets and sweep_trail need sweep_bands > 0",
+        "heading_follow_classes: [walker]\n": r"bad\.yaml: heading_follow_classes \[.walker.\] are not in class_names",
         "image_size: [192, 352\nfusion_dim: 8\n": r"bad\.yaml: not valid YAML at line \d+, column \d+",
         "- 1\n- 2\n": r"bad\.yaml: expected a mapping",
     }

@@ -1,12 +1,14 @@
 """The sweep bands: each point counted once, in its own cell and lag band, each band's mean offset
-in its cell, and the lidar BEV carries them as its last channels."""
+in its cell, each cell's fitted trail, and the lidar BEV carries them as its last channels."""
 import math
 
 import pytest
 import torch
 
 from clfbev.lidar_encoder import LidarEncoder
-from clfbev.sweep_bev import sweep_occupancy
+from clfbev.config import ModelConfig
+from clfbev.errors import ConfigError
+from clfbev.sweep_bev import TRAIL_MIN_POINTS, sweep_occupancy, sweep_trails
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -111,3 +113,73 @@ def test_lidar_bev_with_offsets_ends_with_the_counts_then_the_offsets():
     torch.testing.assert_close(feats.motion[:, :5], sweep_occupancy(*grid))
     torch.testing.assert_close(feats.motion, sweep_occupancy(*grid, offsets=True))
     assert torch.equal(feats.bev[:, -15:], feats.motion)
+
+
+def moving_cluster(centre, velocity, z=0.0, per_sweep=4, sweeps=10):
+    """(sweeps * per_sweep, 5) points of a rigid cluster at ``centre`` in the key frame, moving
+    at ``velocity`` m/s: each sweep's points lie where the cluster was ``lag`` seconds ago."""
+    spread = torch.tensor([[0.0, 0.0], [0.2, 0.0], [0.0, 0.2], [0.2, 0.2]])[:per_sweep]
+    rows = []
+    for k in range(sweeps):
+        lag = 0.05 * k
+        xy = torch.tensor(centre) - lag * torch.tensor(velocity) + spread
+        rows.append(torch.cat([xy, torch.full((per_sweep, 1), z), torch.zeros(per_sweep, 1),
+                               torch.full((per_sweep, 1), lag)], dim=1))
+    return torch.cat(rows)
+
+
+def test_a_trail_inside_one_cell_reads_its_velocity_exactly_on_both_windows():
+    """A walker at (1.2, -0.5) m/s whose 10 sweeps stay in cell (iy 4, ix 4); under it the road's
+    points (below min_z) slide with the ego at 8 m/s, a parked object sits in another cell, and
+    a cell holds too few points to fit."""
+    walker = moving_cluster((0.9, 0.9), (1.2, -0.5))
+    road = moving_cluster((0.6, 0.4), (-8.0, 0.0), z=-1.8)
+    parked = moving_cluster((-4.0, -4.0), (0.0, 0.0))
+    sparse = moving_cluster((4.0, -4.0), (3.0, 0.0), per_sweep=1)[:TRAIL_MIN_POINTS - 1]
+    pts = torch.cat([walker, road, parked, sparse])
+    trails = sweep_trails(pts, torch.zeros(len(pts), dtype=torch.long), 1, RANGE, (8, 8), min_z=-1.4)
+    assert trails.shape == (1, 4, 8, 8)
+    for window in (0, 1):
+        torch.testing.assert_close(trails[0, 2 * window:2 * window + 2, 4, 4], torch.tensor([1.2, -0.5]))
+    assert trails[0, :2, 1, 1].abs().max() < 1e-6                    # parked: 0 m/s
+    assert trails[0, :, 1, 6].abs().max() == 0                      # five points: no fit
+    with_road = sweep_trails(pts, torch.zeros(len(pts), dtype=torch.long), 1, RANGE, (8, 8), min_z=-5.0)
+    assert (with_road[0, :2, 4, 4] - torch.tensor([1.2, -0.5])).abs().max() > 0.5   # the road would spoil it
+
+
+def test_a_trail_across_cells_is_read_by_the_neighbourhood_window():
+    """A car at 10 m/s along y: its 0.45 s trail crosses three 1.6 m cells; the 3x3 window
+    around its key-frame cell holds the whole trail and reads 10 m/s; the cell alone holds a
+    part of it; a second sample in the batch is independent."""
+    car = moving_cluster((0.8, 3.0), (0.0, 10.0))
+    pts = torch.cat([car, moving_cluster((0.8, 0.8), (-1.0, 0.0))])
+    batch = torch.tensor([0] * len(car) + [1] * 40)
+    trails = sweep_trails(pts, batch, 2, RANGE, (8, 8), min_z=-1.4)
+    iy = int((3.0 + 6.4) // 1.6)
+    torch.testing.assert_close(trails[0, 2:, iy, 4], torch.tensor([0.0, 10.0]))
+    assert trails[0, 1, iy, 4] < 9.0
+    torch.testing.assert_close(trails[1, :, 4, 4], torch.tensor([-1.0, 0.0, -1.0, 0.0]))
+
+
+def test_lidar_bev_with_trails_ends_with_them():
+    g = torch.Generator().manual_seed(2)
+    lo, hi = torch.tensor(RANGE[:3]), torch.tensor(RANGE[3:])
+    pts = torch.cat([lo + (hi - lo) * torch.rand(500, 3, generator=g), torch.rand(500, 1, generator=g),
+                     torch.randint(0, 10, (500, 1), generator=g) * 0.05], dim=1)
+    enc = LidarEncoder(5, 16, (8, 16, 16), RANGE, (0.4, 0.4, 0.4), 100000, time_lag_span=0.45,
+                       sweep_bands=5, sweep_offsets=True, trail_min_z=-1.0).eval()
+    with torch.no_grad():
+        feats = enc.encode([pts])
+    ny, nx = enc.out_size
+    batch = torch.zeros(500, dtype=torch.long)
+    assert enc.out_channels == enc.sparse.out_channels + 19 == feats.bev.shape[1]
+    bands = sweep_occupancy(pts, batch, 1, RANGE, (ny, nx), 5, 0.45, offsets=True)
+    torch.testing.assert_close(feats.motion[:, :15], bands)
+    torch.testing.assert_close(feats.motion[:, 15:], sweep_trails(pts, batch, 1, RANGE, (ny, nx), -1.0))
+    assert feats.motion[:, 15:].abs().sum() > 0
+
+
+def test_config_counts_the_trail_channels_and_needs_the_bands():
+    assert ModelConfig(n_sweeps=10, sweep_bands=5, sweep_offsets=True, sweep_trail=True).sweep_channels == 19
+    with pytest.raises(ConfigError, match="sweep_trail need"):
+        ModelConfig(n_sweeps=10, sweep_trail=True)
