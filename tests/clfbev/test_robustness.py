@@ -117,7 +117,7 @@ def test_robustness_report_on_paired_sets(tiny_dataset, tmp_path):
     # 500 boxes kept per sample cover an eighth of the cells, these seeds give a clean NDS > 0
     # (some boxes land near the GT), so that RR is defined.
     a = _ckpt(tmp_path / "full.pt", cfg, "full", 0)
-    b = _ckpt(tmp_path / "concat.pt", cfg, "concat", 2)
+    b = _ckpt(tmp_path / "concat.pt", cfg, "concat", 4)
     out = tmp_path / "rob"
     cmd = [sys.executable, "-m", "clfbev", "robustness", "--ckpt", f"full={a}", "--ckpt", f"concat={b}",
            "--set", f"clean={tiny_dataset}", "--set", f"fog3={fog}", "--corrupt", "camera_crash:6", "--out", str(out)]
