@@ -337,8 +337,9 @@ def tiny() -> ModelConfig:
     at this budget, and the gate calls a box moving above 0.5 m/s, a walker's pace; a walker's
     heading is its predicted velocity's direction where that is faster than 0.5 m/s
     (``heading_follow_classes``), other classes' yaw turns by pi where it points against it
-    (NDS 0.363 / 0.361 against 0.309 / 0.342, mAVE 0.483 / 0.509 against 0.845 / 0.657, seeds 0
-    and 1, at 1.02x the step; docs/benchmarks.md, "Motion, sixth round: each cell's trail"). The
+    (three seeds: NDS 0.363 / 0.361 / 0.365 against 0.309 / 0.342 / 0.348, mAVE 0.483 / 0.509 /
+    0.453 against 0.845 / 0.657 / 0.632, mAP 0.241 / 0.244 / 0.231 against 0.248 / 0.261 / 0.275,
+    at 1.02x the step; docs/benchmarks.md, "Motion, sixth round: each cell's trail"). The
     camera's depth
     loss weighs each cell by its target depth squared (``loss.depth_range_power`` 2; BEVDepth's
     plain mean lets the near road decide the depth head): `camera` car AP 0.050 / 0.051 against
