@@ -15,6 +15,14 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 RANGE = (-6.4, -6.4, -2.0, 6.4, 6.4, 2.0)    # 8 x 8 BEV cells of 1.6 m
 
 
+def random_points(n: int, seed: int) -> torch.Tensor:
+    """(n, 5) points uniform over RANGE, intensity in [0, 1), lags of the 10 sweeps."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = torch.tensor(RANGE[:3]), torch.tensor(RANGE[3:])
+    return torch.cat([lo + (hi - lo) * torch.rand(n, 3, generator=g), torch.rand(n, 1, generator=g),
+                      torch.randint(0, 10, (n, 1), generator=g) * 0.05], dim=1)
+
+
 def test_points_land_in_their_cell_and_band():
     # x, y, z, intensity, lag; 10 sweeps of 0.05 s over a 0.45 s span, 5 bands of 0.09 s.
     pts = torch.tensor([
@@ -72,10 +80,7 @@ def test_a_walkers_trail_inside_one_cell_shows_in_the_offsets_not_the_counts():
 
 
 def test_lidar_bev_ends_with_the_bands():
-    g = torch.Generator().manual_seed(0)
-    lo, hi = torch.tensor(RANGE[:3]), torch.tensor(RANGE[3:])
-    pts = torch.cat([lo + (hi - lo) * torch.rand(2000, 3, generator=g), torch.rand(2000, 1, generator=g),
-                     torch.randint(0, 10, (2000, 1), generator=g) * 0.05], dim=1)
+    pts = random_points(2000, 0)
     torch.manual_seed(0)
     enc = LidarEncoder(5, 16, (8, 16, 16), RANGE, (0.4, 0.4, 0.4), 100000, time_lag_span=0.45,
                        sweep_bands=5).eval()
@@ -99,10 +104,7 @@ def test_lidar_bev_ends_with_the_bands():
 
 
 def test_lidar_bev_with_offsets_ends_with_the_counts_then_the_offsets():
-    g = torch.Generator().manual_seed(1)
-    lo, hi = torch.tensor(RANGE[:3]), torch.tensor(RANGE[3:])
-    pts = torch.cat([lo + (hi - lo) * torch.rand(500, 3, generator=g), torch.rand(500, 1, generator=g),
-                     torch.randint(0, 10, (500, 1), generator=g) * 0.05], dim=1)
+    pts = random_points(500, 1)
     enc = LidarEncoder(5, 16, (8, 16, 16), RANGE, (0.4, 0.4, 0.4), 100000, time_lag_span=0.45,
                        sweep_bands=5, sweep_offsets=True).eval()
     with torch.no_grad():
@@ -162,10 +164,7 @@ def test_a_trail_across_cells_is_read_by_the_neighbourhood_window():
 
 
 def test_lidar_bev_with_trails_ends_with_them():
-    g = torch.Generator().manual_seed(2)
-    lo, hi = torch.tensor(RANGE[:3]), torch.tensor(RANGE[3:])
-    pts = torch.cat([lo + (hi - lo) * torch.rand(500, 3, generator=g), torch.rand(500, 1, generator=g),
-                     torch.randint(0, 10, (500, 1), generator=g) * 0.05], dim=1)
+    pts = random_points(500, 2)
     enc = LidarEncoder(5, 16, (8, 16, 16), RANGE, (0.4, 0.4, 0.4), 100000, time_lag_span=0.45,
                        sweep_bands=5, sweep_offsets=True, trail_min_z=-1.0).eval()
     with torch.no_grad():
