@@ -218,7 +218,8 @@ class ModelConfig:
     def sweep_channels(self) -> int:
         """The sweep bands' channels: a count per band, its x and y offsets with ``sweep_offsets``,
         and with ``sweep_trail`` the fitted ``vx, vy`` per trail window."""
-        return self.sweep_bands * (3 if self.sweep_offsets else 1) + (2 * len(TRAIL_WINDOWS) if self.sweep_trail else 0)
+        trail = 2 * len(TRAIL_WINDOWS) if self.sweep_trail else 0
+        return self.sweep_bands * (3 if self.sweep_offsets else 1) + trail
 
     @property
     def cam_bev_voxel(self) -> tuple[float, float, float]:
@@ -340,9 +341,8 @@ def tiny() -> ModelConfig:
     (three seeds: NDS 0.363 / 0.361 / 0.365 against 0.309 / 0.342 / 0.348, mAVE 0.483 / 0.509 /
     0.453 against 0.845 / 0.657 / 0.632, mAP 0.241 / 0.244 / 0.231 against 0.248 / 0.261 / 0.275,
     at 1.02x the step; docs/benchmarks.md, "Motion, sixth round: each cell's trail"). The
-    camera's depth
-    loss weighs each cell by its target depth squared (``loss.depth_range_power`` 2; BEVDepth's
-    plain mean lets the near road decide the depth head): `camera` car AP 0.050 / 0.051 against
+    camera's depth loss weighs each cell by its target depth squared (``loss.depth_range_power``
+    2; BEVDepth's plain mean lets the near road decide the depth head): `camera` car AP 0.050 / 0.051 against
     0.034 / 0.029, depth within a bin beyond 35 m 0.28 / 0.26 against 0.15 / 0.16, two seeds;
     docs/benchmarks.md, "The camera: input and stride, a pretraining curve, far depth")."""
     return ModelConfig(n_sweeps=10, sweep_bands=5, sweep_offsets=True, loss=LossWeights(dir=1.0, depth_range_power=2.0),

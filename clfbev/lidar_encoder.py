@@ -25,8 +25,8 @@ from torch import Tensor, nn
 from clfbev.layers import BN_EPS, BN_MOMENTUM
 from clfbev.ops.sparse_conv import SparseConv3d, SparseTensor, SubMConv3d, subm_rulebook
 from clfbev.ops.voxelize import voxelize
-from clfbev.settings import conv_out_size, grid_shape_of
-from clfbev.sweep_bev import TRAIL_WINDOWS, sweep_occupancy, sweep_trails
+from clfbev.settings import TRAIL_WINDOWS, conv_out_size, grid_shape_of
+from clfbev.sweep_bev import sweep_occupancy, sweep_trails
 
 Triple = tuple[int, int, int]
 

@@ -150,8 +150,8 @@ def sweep_trails(
         n_safe = n.clamp(min=1)
         var_t = stt / n_safe - (st / n_safe) ** 2
         fit = (n >= TRAIL_MIN_POINTS) & (var_t >= TRAIL_MIN_LAG_STD ** 2)
-        for s, sxt_ in ((sx, sxt), (sy, syt)):
-            cov = sxt_ / n_safe - (s / n_safe) * (st / n_safe)
+        for sum_p, sum_pt in ((sx, sxt), (sy, syt)):
+            cov = sum_pt / n_safe - (sum_p / n_safe) * (st / n_safe)
             v = torch.where(fit, -cov / var_t.clamp(min=TRAIL_MIN_LAG_STD ** 2), torch.zeros_like(cov))
             out.append(v.clamp(-TRAIL_MAX_SPEED, TRAIL_MAX_SPEED))
     return torch.stack(out, dim=1).to(points.dtype)
