@@ -28,6 +28,9 @@ import numpy as np
 
 from . import geometry, sun as sunlight
 from .config import CameraConfig
+from .face_meshes import STATIC_TILE, bounding_spheres, coded_mesh, depth_mesh, static_tiles
+from .gl_readback import (read_single_sample_framebuffer, read_window_depth, single_sample_framebuffers,
+                          window_from_linear_depth)
 from .rig import Camera
 from .world import World
 
@@ -35,69 +38,8 @@ from .world import World
 T_CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 SKY = (0.62, 0.74, 0.88)
 GL_PLATFORMS = ("egl", "osmesa")
-STATIC_TILE = 40.0   # metres: the side of the static world's culled tiles
 CAMERA_ZNEAR = 0.1   # metres
 CASTER_MIN_HEIGHT = 0.2   # metres: static faces wholly below this cast no shadow worth drawing
-
-
-def _single_sample_framebuffers(renderer_module) -> None:
-    """Make pyrender's offscreen framebuffers single-sample.
-
-    pyrender renders into a 4x multisample framebuffer and resolves it with GL_LINEAR, which
-    averages the id colours of the segmentation pass at every object edge into ids of other
-    objects; the id pass must be exact. It is also most of the cost on a software rasteriser.
-    Samples = 0 asks GL for an ordinary renderbuffer, so the resolve becomes a plain copy.
-    """
-    original = renderer_module.glRenderbufferStorageMultisample
-    if getattr(original, "_simgen_single_sample", False):
-        return
-
-    def storage(target, samples, internal_format, width, height):
-        return original(target, 0, internal_format, width, height)
-
-    storage._simgen_single_sample = True
-    renderer_module.glRenderbufferStorageMultisample = storage
-
-
-def _read_single_sample_framebuffer(renderer, scene, flags, with_depth: bool = True):
-    """Stands in for pyrender's ``Renderer._read_main_framebuffer`` (EGL), given single-sample
-    buffers: read the render target directly, without pyrender's blit into a second framebuffer,
-    and linearise depth with whole-array float32 arithmetic instead of boolean-mask indexing.
-
-    Returns rgba (H, W, 4) uint8 and depth (H, W) float32 camera z (m), 0 where nothing was hit,
-    both top row first, as pyrender's reader does; depth is None unless ``with_depth``.
-    """
-    from OpenGL.GL import (GL_DEPTH_COMPONENT, GL_FLOAT, GL_READ_FRAMEBUFFER, GL_RGBA, GL_UNSIGNED_BYTE,
-                           glBindFramebuffer, glReadPixels)
-    w, h = renderer._main_fb_dims
-    glBindFramebuffer(GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
-    rgba = np.frombuffer(glReadPixels(0, 0, w, h, GL_RGBA, GL_UNSIGNED_BYTE), np.uint8).reshape(h, w, 4)[::-1]
-    if not with_depth:
-        return rgba, None
-    ndc = np.frombuffer(glReadPixels(0, 0, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w)[::-1]
-    cam = scene.main_camera_node.camera
-    n, f = cam.znear, cam.zfar
-    depth = (2.0 * n * f) / (f + n - (2.0 * ndc - 1.0) * (f - n))      # float32, as pyrender computes it
-    depth[ndc == 1.0] = 0.0
-    return rgba, depth
-
-
-def _read_window_depth(renderer, scene, flags):
-    """Stands in for ``Renderer._read_main_framebuffer`` (EGL) in the shadow pass: the depth
-    buffer as it is, (H, W) float32 window depth in [0, 1] (1 = nothing), top row first. The
-    shadow camera is orthographic, so window depth is already linear in distance."""
-    from OpenGL.GL import GL_DEPTH_COMPONENT, GL_FLOAT, GL_READ_FRAMEBUFFER, glBindFramebuffer, glReadPixels
-    w, h = renderer._main_fb_dims
-    glBindFramebuffer(GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
-    return np.frombuffer(glReadPixels(0, 0, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w)[::-1]
-
-
-def _window_from_linear_depth(depth: np.ndarray, znear: float, zfar: float) -> np.ndarray:
-    """Undo pyrender's own reader (OSMesa), which linearises every depth buffer as a perspective
-    one: (H, W) float32 its output -> window depth in [0, 1] (0 read back as 1 = nothing)."""
-    d = depth.astype(np.float64)
-    ndc = (zfar + znear - 2.0 * znear * zfar / np.where(d > 0, d, np.inf)) / (zfar - znear)
-    return np.where(d > 0, (ndc + 1.0) / 2.0, 1.0).astype(np.float32)
 
 
 def select_platform(platform: str | None) -> str:
@@ -107,18 +49,6 @@ def select_platform(platform: str | None) -> str:
         raise ValueError(f"unknown GL platform {chosen!r} (allowed: {', '.join(GL_PLATFORMS)})")
     os.environ["PYOPENGL_PLATFORM"] = chosen
     return chosen
-
-
-def encode_ids(ids: np.ndarray) -> np.ndarray:
-    """(n,) non-negative ints below 2^24 -> (n, 3) uint8 colours that carry them exactly."""
-    ids = np.asarray(ids, dtype=np.int64)
-    return np.stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255], -1).astype(np.uint8)
-
-
-def decode_ids(rgb: np.ndarray) -> np.ndarray:
-    """(..., 3) uint8 colours from :func:`encode_ids` -> (...) int64."""
-    rgb = rgb.astype(np.int64)
-    return rgb[..., 0] | (rgb[..., 1] << 8) | (rgb[..., 2] << 16)
 
 
 class Renderer:
@@ -131,16 +61,16 @@ class Renderer:
 
     What is drawn per camera: the static world in square tiles of ``STATIC_TILE`` metres and the
     moving actors, each culled by its bounding sphere against the view frustum, drawn near to
-    far. (A modest gain: llvmpipe's time goes mostly to filling pixels.) pyrender's own draw list (every mesh node, sorted by distance on every frame, then
-    the hidden ones skipped) is replaced on this instance by the culled list: opaque,
-    depth-tested geometry needs no sorting.
+    far. (A modest gain: llvmpipe's time goes mostly to filling pixels.) pyrender's own draw
+    list (every mesh node, sorted by distance on every frame, then the hidden ones skipped) is
+    replaced on this instance by the culled list: opaque, depth-tested geometry needs no sorting.
     """
 
     def __init__(self, cfg: CameraConfig, platform: str | None = None):
         select_platform(platform)
         import pyrender  # noqa: deferred on purpose, see the module docstring
         import pyrender.renderer
-        _single_sample_framebuffers(pyrender.renderer)
+        single_sample_framebuffers(pyrender.renderer)
         self._pr = pyrender
         self.cfg = cfg
         self.width, self.height = cfg.resolution
@@ -150,9 +80,9 @@ class Renderer:
         gl_renderer._sorted_mesh_nodes = lambda scene: self._drawn
         self._readers = None
         if self._gl._platform.supports_framebuffers():      # EGL; OSMesa reads its own window buffer
-            self._readers = {d: types.MethodType(functools.partial(_read_single_sample_framebuffer, with_depth=d),
+            self._readers = {d: types.MethodType(functools.partial(read_single_sample_framebuffer, with_depth=d),
                                                  gl_renderer) for d in (False, True)}
-            self._readers["window"] = types.MethodType(_read_window_depth, gl_renderer)
+            self._readers["window"] = types.MethodType(read_window_depth, gl_renderer)
         self.scene = None
         self._world_key = None
 
@@ -199,13 +129,13 @@ class Renderer:
         tris, norms, albedo, owner = (np.concatenate(x) for x in (tris, norms, albedo, owner))
         tiles = static_tiles(tris, STATIC_TILE)
         self.static_nodes = [add(tris[f], norms[f], albedo[f], sun, owner[f]) for f in tiles]
-        self.static_centre, self.static_radius = _bounding_spheres([tris[f] for f in tiles])
+        self.static_centre, self.static_radius = bounding_spheres([tris[f] for f in tiles])
         # The shadow pass draws only what can cast a shadow: the ground, the road and the kerbs
         # shade nothing that stands on them, and leaving them out halves its work.
         casters = tris[tris[:, :, 2].max(axis=1) > CASTER_MIN_HEIGHT]
         caster_tiles = [casters[f] for f in static_tiles(casters, STATIC_TILE)]
         self.caster_nodes = [scene.add(depth_mesh(pr, t)) for t in caster_tiles]
-        self.caster_centre, self.caster_radius = _bounding_spheres(caster_tiles)
+        self.caster_centre, self.caster_radius = bounding_spheres(caster_tiles)
         self.actor_nodes, self.radius, self.turning = {}, {}, {}
         for i, a in enumerate(world.actors):
             # The ego is not rendered (no pixels of the own car); static actors are merged above.
@@ -341,7 +271,7 @@ class Renderer:
             self._gl._renderer._read_main_framebuffer = self._readers["window"]
             return self._gl.render(self.scene, flags=pr.RenderFlags.DEPTH_ONLY), view
         depth = self._gl.render(self.scene, flags=pr.RenderFlags.DEPTH_ONLY)
-        return _window_from_linear_depth(depth, view.znear, view.zfar), view
+        return window_from_linear_depth(depth, view.znear, view.zfar), view
 
     def _in_view(self, cam: Camera, T_global_from_cam, centres, radius) -> np.ndarray:
         """Whether each bounding sphere may touch the view frustum (conservative)."""
@@ -387,49 +317,6 @@ class IdImage:
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         ids = np.take(self.face_owner, self.face)
         return ids if dtype is None else ids.astype(dtype)
-
-
-def _bounding_spheres(tiles: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Centre (n, 3) and radius (n,) of the bounding box's sphere of each (F, 3, 3) tile."""
-    centre, radius = [], []
-    for tile in tiles:
-        lo, hi = tile.reshape(-1, 3).min(axis=0), tile.reshape(-1, 3).max(axis=0)
-        centre.append((lo + hi) / 2)
-        radius.append(float(np.linalg.norm(hi - lo)) / 2)
-    return np.array(centre).reshape(-1, 3), np.array(radius)
-
-
-def static_tiles(triangles: np.ndarray, size: float) -> list[np.ndarray]:
-    """Split (F, 3, 3) triangles into square tiles of ``size`` metres by their centroid's x, y.
-
-    Returns the face indices of each non-empty tile, tiles in (x, y) order, faces in their order.
-    """
-    cell = np.floor(triangles[:, :, :2].mean(axis=1) / size).astype(np.int64)
-    cell -= cell.min(axis=0) if len(cell) else 0
-    key = cell[:, 0] * (int(cell[:, 1].max(initial=0)) + 1) + cell[:, 1]
-    order = np.argsort(key, kind="stable")
-    return np.split(order, np.flatnonzero(np.diff(key[order])) + 1)
-
-
-def coded_mesh(pr, triangles: np.ndarray, first: int):
-    """A pyrender mesh of (F, 3, 3) triangles, face f coloured with the code of index ``first + f``
-    (:func:`encode_ids`), built as ``pyrender.Mesh.from_trimesh(..., smooth=False)`` builds a mesh
-    with face colours (same material), less the normals the unlit pass does not read."""
-    n = len(triangles)
-    colours = np.full((n, 4), 255, np.uint8)
-    colours[:, :3] = encode_ids(first + np.arange(n))
-    material = pr.MetallicRoughnessMaterial(alphaMode="BLEND", baseColorFactor=[1.0, 1.0, 1.0, 1.0],
-                                            metallicFactor=0.2, roughnessFactor=0.8)
-    primitive = pr.Primitive(positions=triangles.reshape(-1, 3), color_0=np.repeat(colours, 3, axis=0),
-                             material=material, mode=pr.constants.GLTF.TRIANGLES)
-    return pr.Mesh(primitives=[primitive])
-
-
-def depth_mesh(pr, triangles: np.ndarray):
-    """A pyrender mesh of (F, 3, 3) triangles for depth-only passes (no colours, no normals)."""
-    material = pr.MetallicRoughnessMaterial(baseColorFactor=[1.0, 1.0, 1.0, 1.0])
-    return pr.Mesh(primitives=[pr.Primitive(positions=triangles.reshape(-1, 3), material=material,
-                                            mode=pr.constants.GLTF.TRIANGLES)])
 
 
 def depth_to_range(depth: np.ndarray, K: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ from pyquaternion import Quaternion
 
 from . import geometry
 from . import lidarseg
-from .camera import STATIC_TILE, static_tiles
+from .face_meshes import STATIC_TILE, static_tiles
 from .world import CYCLES, VEHICLES, Actor, World
 
 VISIBILITY_BINS = np.array([0.4, 0.6, 0.8])

@@ -1,0 +1,69 @@
+"""pyrender's offscreen framebuffers made exact and cheap: single-sample buffers, read back
+directly on EGL, and OSMesa's depth turned back into window depth.
+
+pyrender has no option for any of these, so :class:`simgen.camera.Renderer` patches its module
+function and stands these readers in for its instance's ``_read_main_framebuffer``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def single_sample_framebuffers(renderer_module) -> None:
+    """Make pyrender's offscreen framebuffers single-sample.
+
+    pyrender renders into a 4x multisample framebuffer and resolves it with GL_LINEAR, which
+    averages the id colours of the segmentation pass at every object edge into ids of other
+    objects; the id pass must be exact. It is also most of the cost on a software rasteriser.
+    Samples = 0 asks GL for an ordinary renderbuffer, so the resolve becomes a plain copy.
+    """
+    original = renderer_module.glRenderbufferStorageMultisample
+    if getattr(original, "_simgen_single_sample", False):
+        return
+
+    def storage(target, samples, internal_format, width, height):
+        return original(target, 0, internal_format, width, height)
+
+    storage._simgen_single_sample = True
+    renderer_module.glRenderbufferStorageMultisample = storage
+
+
+def read_single_sample_framebuffer(renderer, scene, flags, with_depth: bool = True):
+    """Stands in for pyrender's ``Renderer._read_main_framebuffer`` (EGL), given single-sample
+    buffers: read the render target directly, without pyrender's blit into a second framebuffer,
+    and linearise depth with whole-array float32 arithmetic instead of boolean-mask indexing.
+
+    Returns rgba (H, W, 4) uint8 and depth (H, W) float32 camera z (m), 0 where nothing was hit,
+    both top row first, as pyrender's reader does; depth is None unless ``with_depth``.
+    """
+    from OpenGL.GL import (GL_DEPTH_COMPONENT, GL_FLOAT, GL_READ_FRAMEBUFFER, GL_RGBA, GL_UNSIGNED_BYTE,
+                           glBindFramebuffer, glReadPixels)
+    w, h = renderer._main_fb_dims
+    glBindFramebuffer(GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
+    rgba = np.frombuffer(glReadPixels(0, 0, w, h, GL_RGBA, GL_UNSIGNED_BYTE), np.uint8).reshape(h, w, 4)[::-1]
+    if not with_depth:
+        return rgba, None
+    ndc = np.frombuffer(glReadPixels(0, 0, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w)[::-1]
+    cam = scene.main_camera_node.camera
+    n, f = cam.znear, cam.zfar
+    depth = (2.0 * n * f) / (f + n - (2.0 * ndc - 1.0) * (f - n))      # float32, as pyrender computes it
+    depth[ndc == 1.0] = 0.0
+    return rgba, depth
+
+
+def read_window_depth(renderer, scene, flags):
+    """Stands in for ``Renderer._read_main_framebuffer`` (EGL) in the shadow pass: the depth
+    buffer as it is, (H, W) float32 window depth in [0, 1] (1 = nothing), top row first. The
+    shadow camera is orthographic, so window depth is already linear in distance."""
+    from OpenGL.GL import GL_DEPTH_COMPONENT, GL_FLOAT, GL_READ_FRAMEBUFFER, glBindFramebuffer, glReadPixels
+    w, h = renderer._main_fb_dims
+    glBindFramebuffer(GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
+    return np.frombuffer(glReadPixels(0, 0, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w)[::-1]
+
+
+def window_from_linear_depth(depth: np.ndarray, znear: float, zfar: float) -> np.ndarray:
+    """Undo pyrender's own reader (OSMesa), which linearises every depth buffer as a perspective
+    one: (H, W) float32 its output -> window depth in [0, 1] (0 read back as 1 = nothing)."""
+    d = depth.astype(np.float64)
+    ndc = (zfar + znear - 2.0 * znear * zfar / np.where(d > 0, d, np.inf)) / (zfar - znear)
+    return np.where(d > 0, (ndc + 1.0) / 2.0, 1.0).astype(np.float32)
