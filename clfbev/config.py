@@ -43,7 +43,8 @@ class ModelConfig:
     ``sweep_offsets`` (each band's mean offset in its cell joins them too: a walker's sub-cell trail),
     ``sweep_trail`` (each cell's least-squares velocity of its points above ``sweep_trail_min_z``,
     m in the lidar frame, over the cell and its 3x3 neighbourhood joins them too,
-    :func:`clfbev.sweep_bev.sweep_trails`).
+    :func:`clfbev.sweep_bev.sweep_trails`), ``sweep_trail_in_bev`` (False: only the velocity
+    tower reads the trails, not the backbone).
     Camera: ``cam_backbone`` (``resnet``, or ``efficientnet_lite0`` for the ImageNet experiment,
     :mod:`clfbev.efficientnet_lite`), ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``,
     ``context_ch``, ``depth_bins`` (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``,
@@ -93,6 +94,7 @@ class ModelConfig:
     sweep_offsets: bool = False
     sweep_trail: bool = False
     sweep_trail_min_z: float = -1.4      # 0.44 m above the road under a lidar 1.84 m up (the rig's)
+    sweep_trail_in_bev: bool = True
     # camera
     cam_backbone: str = "resnet"
     cam_depth: int = 18
@@ -173,6 +175,8 @@ class ModelConfig:
             raise ConfigError(f"image_size {self.image_size} must be a multiple of feature_stride (8 or 16)")
         if (self.sweep_offsets or self.sweep_trail) and not self.sweep_bands > 0:
             raise ConfigError("sweep_offsets and sweep_trail need sweep_bands > 0 (they join the bands)")
+        if self.sweep_trail and not self.sweep_trail_in_bev and not self.velocity_tower:
+            raise ConfigError("sweep_trail_in_bev false needs a velocity_tower (nothing else would read the trails)")
         if self.cam_semantic_lift and not self.loss.semantic > 0:
             raise ConfigError("cam_semantic_lift needs the perspective head: set loss.semantic > 0")
         if len(self.loss.code_weights) < self.code_size:
@@ -211,15 +215,21 @@ class ModelConfig:
 
     @property
     def lidar_bev_channels(self) -> int:
-        """Lidar BEV channels: last sparse stage channels x remaining z cells, and the sweep bands."""
-        return self.sparse_channels[-1] * self._sparse_grid[0] + self.sweep_channels
+        """Lidar BEV channels: last sparse stage channels x remaining z cells, and the sweep bands
+        (their trails only with ``sweep_trail_in_bev``)."""
+        trail_out = 0 if self.sweep_trail_in_bev else self.trail_channels
+        return self.sparse_channels[-1] * self._sparse_grid[0] + self.sweep_channels - trail_out
 
     @property
     def sweep_channels(self) -> int:
         """The sweep bands' channels: a count per band, its x and y offsets with ``sweep_offsets``,
         and with ``sweep_trail`` the fitted ``vx, vy`` per trail window."""
-        trail = 2 * len(TRAIL_WINDOWS) if self.sweep_trail else 0
-        return self.sweep_bands * (3 if self.sweep_offsets else 1) + trail
+        return self.sweep_bands * (3 if self.sweep_offsets else 1) + self.trail_channels
+
+    @property
+    def trail_channels(self) -> int:
+        """With ``sweep_trail``, the fitted ``vx, vy`` per trail window; else 0."""
+        return 2 * len(TRAIL_WINDOWS) if self.sweep_trail else 0
 
     @property
     def cam_bev_voxel(self) -> tuple[float, float, float]:

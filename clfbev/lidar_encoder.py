@@ -32,10 +32,10 @@ Triple = tuple[int, int, int]
 
 
 class LidarFeatures(NamedTuple):
-    """The lidar BEV and, by name, the motion features inside it.
+    """The lidar BEV and, by name, the motion features.
 
     bev : (B, out_channels, ny, nx) the lidar BEV: the sparse encoder's channels, then the sweep
-        bands (if any).
+        bands (if any; their trails only with ``trail_in_bev``).
     motion : (B, sweep_channels, ny, nx) the sweep bands (:mod:`clfbev.sweep_bev`), which the
         velocity tower reads beside the backbone's features; None without sweep bands.
     """
@@ -290,6 +290,7 @@ class LidarEncoder(nn.Module):
     sweep_offsets : the bands' mean offsets in their cells follow the counts (2 channels a band).
     trail_min_z : m, lidar frame, or None: the fitted trails of the points above it follow
         (``2 * len(TRAIL_WINDOWS)`` channels, m/s); None: no trails.
+    trail_in_bev : the trails join the lidar BEV; False: only the motion features hold them.
     """
 
     def __init__(
@@ -308,6 +309,7 @@ class LidarEncoder(nn.Module):
         sweep_bands: int = 0,
         sweep_offsets: bool = False,
         trail_min_z: float | None = None,
+        trail_in_bev: bool = True,
     ) -> None:
         super().__init__()
         self.point_ch = point_ch
@@ -315,6 +317,7 @@ class LidarEncoder(nn.Module):
         self.trail_min_z = trail_min_z
         trail_ch = 2 * len(TRAIL_WINDOWS) if trail_min_z is not None else 0
         self.sweep_channels = sweep_bands * (3 if sweep_offsets else 1) + trail_ch
+        self.bev_sweep_channels = self.sweep_channels - (0 if trail_in_bev else trail_ch)
         self.pc_range, self.voxel_size = tuple(pc_range), tuple(voxel_size)
         self.max_voxels = max_voxels
         self.grid_shape = grid_shape_of(self.pc_range, self.voxel_size)  # (nz, ny, nx)
@@ -323,7 +326,7 @@ class LidarEncoder(nn.Module):
 
     @property
     def out_channels(self) -> int:
-        return self.sparse.out_channels + self.sweep_channels
+        return self.sparse.out_channels + self.bev_sweep_channels
 
     @property
     def out_size(self) -> tuple[int, int]:
@@ -382,7 +385,8 @@ class LidarEncoder(nn.Module):
             # No point in range anywhere in the batch: the BEV is empty (BatchNorm cannot run on
             # zero rows in training mode, so short-cut it).
             bev = points.new_zeros((batch_size, self.out_channels, ny, nx))
-            return LidarFeatures(bev, bev[:, self.sparse.out_channels:] if self.sweep_channels else None)
+            motion = points.new_zeros((batch_size, self.sweep_channels, ny, nx)) if self.sweep_channels else None
+            return LidarFeatures(bev, motion)
         feats = self.vfe(points[vox.point_index], vox.voxel_id, vox.num_points, vox.coords)  # (V, vfe_ch)
         bev = self.sparse(SparseTensor(feats, vox.coords, vox.grid_shape, batch_size))
         if not self.sweep_bands:
@@ -392,4 +396,4 @@ class LidarEncoder(nn.Module):
         if self.trail_min_z is not None:
             trails = sweep_trails(points, batch_idx, batch_size, self.pc_range, (ny, nx), self.trail_min_z)
             bands = torch.cat([bands, trails.to(bev.dtype)], dim=1)
-        return LidarFeatures(torch.cat([bev, bands], dim=1), bands)
+        return LidarFeatures(torch.cat([bev, bands[:, :self.bev_sweep_channels]], dim=1), bands)

@@ -135,6 +135,7 @@ class CLFusionBEV(nn.Module):
                 cfg.max_voxels, cfg.sparse_blocks, xy_stride=cfg.lidar_bev_stride,
                 time_lag_span=cfg.time_lag_span, sweep_bands=cfg.sweep_bands,
                 sweep_offsets=cfg.sweep_offsets, trail_min_z=cfg.sweep_trail_min_z if cfg.sweep_trail else None,
+                trail_in_bev=cfg.sweep_trail_in_bev,
             )
         if uses_camera:
             self.camera_encoder = CameraEncoder.from_config(cfg)

@@ -182,3 +182,27 @@ def test_config_counts_the_trail_channels_and_needs_the_bands():
     assert ModelConfig(n_sweeps=10, sweep_bands=5, sweep_offsets=True, sweep_trail=True).sweep_channels == 19
     with pytest.raises(ConfigError, match="sweep_trail need"):
         ModelConfig(n_sweeps=10, sweep_trail=True)
+
+
+def test_trails_kept_out_of_the_bev_still_reach_the_motion_features():
+    pts = random_points(500, 2)
+    kw = dict(time_lag_span=0.45, sweep_bands=5, sweep_offsets=True, trail_min_z=-1.0)
+    torch.manual_seed(0)
+    inside = LidarEncoder(5, 16, (8, 16, 16), RANGE, (0.4, 0.4, 0.4), 100000, **kw).eval()
+    torch.manual_seed(0)
+    outside = LidarEncoder(5, 16, (8, 16, 16), RANGE, (0.4, 0.4, 0.4), 100000, trail_in_bev=False, **kw).eval()
+    with torch.no_grad():
+        a, b = inside.encode([pts]), outside.encode([pts])
+    assert outside.out_channels == outside.sparse.out_channels + 15 == b.bev.shape[1]
+    torch.testing.assert_close(b.bev, a.bev[:, :-4])
+    torch.testing.assert_close(b.motion, a.motion)
+    assert b.motion[:, 15:].abs().sum() > 0
+
+
+def test_config_keeps_the_trails_out_of_the_bev_only_for_a_velocity_tower():
+    cfg = ModelConfig(n_sweeps=10, sweep_bands=5, sweep_offsets=True, sweep_trail=True, velocity_tower=16,
+                      sweep_trail_in_bev=False)
+    assert cfg.sweep_channels == 19
+    assert cfg.lidar_bev_channels == ModelConfig(n_sweeps=10, sweep_bands=5, sweep_offsets=True).lidar_bev_channels
+    with pytest.raises(ConfigError, match="sweep_trail_in_bev false needs a velocity_tower"):
+        ModelConfig(n_sweeps=10, sweep_bands=5, sweep_trail=True, sweep_trail_in_bev=False)
