@@ -29,7 +29,8 @@ from clfbev.run.checkpoint import check_tensors, config_of, load_checkpoint
 # The model config fields that decide what the lidar path and the head compute; a checkpoint
 # that differs in one of them holds weights for another detector, whatever their shapes.
 LIDAR_FIELDS = ("class_names", "pc_range", "n_sweeps", "voxel_size", "vfe_ch", "sparse_channels",
-                "lidar_bev_stride", "sparse_blocks", "sweep_bands", "sweep_offsets", "bev_channels",
+                "lidar_bev_stride", "sparse_blocks", "sweep_bands", "sweep_offsets", "sweep_trail",
+                "sweep_trail_min_z", "sweep_trail_in_bev", "bev_channels",
                 "bev_blocks", "bev_up_ch", "anchor_rotations", "code_size", "n_dir_bins", "velocity_tower",
                 "velocity_detach", "velocity_gate")
 # Modules that must load whole, and the one that loads where its tensors fit.

@@ -77,6 +77,9 @@ def test_refusals(lidar_state, tmp_path):
     other = dataclasses.replace(MICRO, voxel_size=(0.5, 0.5, 0.5))
     with pytest.raises(CheckpointError, match=r"another lidar detector \(differs in: voxel_size"):
         _start("full", path, other)
+    other = dataclasses.replace(MICRO, sweep_trail_min_z=-1.0)     # where the trails' points start
+    with pytest.raises(CheckpointError, match=r"another lidar detector \(differs in: sweep_trail_min_z"):
+        _start("full", path, other)
     camera_only = {**lidar_state, "variant": "camera", "model": CLFusionBEV(MICRO, "camera").state_dict()}
     with pytest.raises(CheckpointError, match="variant 'camera' is of another architecture"):
         _start("full", save_checkpoint(tmp_path / "camera.pt", camera_only))
