@@ -353,9 +353,10 @@ def tiny() -> ModelConfig:
     0.453 against 0.845 / 0.657 / 0.632, mAP 0.241 / 0.244 / 0.231 against 0.248 / 0.261 / 0.275,
     at 1.02x the step; docs/benchmarks.md, "Motion, sixth round: each cell's trail"). The
     camera's depth loss weighs each cell by its target depth squared (``loss.depth_range_power``
-    2; BEVDepth's plain mean lets the near road decide the depth head): `camera` car AP 0.050 / 0.051 against
-    0.034 / 0.029, depth within a bin beyond 35 m 0.28 / 0.26 against 0.15 / 0.16, two seeds;
-    docs/benchmarks.md, "The camera: input and stride, a pretraining curve, far depth")."""
+    2; BEVDepth's plain mean lets the near road decide the depth head): `camera` car AP 0.050 /
+    0.051 against 0.034 / 0.029, depth within a bin beyond 35 m 0.28 / 0.26 against 0.15 / 0.16,
+    two seeds; docs/benchmarks.md, "The camera: input and stride, a pretraining curve, far
+    depth")."""
     return ModelConfig(n_sweeps=10, sweep_bands=5, sweep_offsets=True, loss=LossWeights(dir=1.0, depth_range_power=2.0),
                        min_positives=4,
                        velocity_tower=16, velocity_detach=True, velocity_gate=True, velocity_balance=True,

@@ -129,8 +129,8 @@ def recipe(preset: str, variant: str) -> TrainConfig:
     in the last 20% of the steps, drawn class-balanced (every class as often: with the motion
     features, NDS 0.407 / 0.424 against 0.363 / 0.361 and mAP 0.242 / 0.246 against 0.241 /
     0.244 on two `lidar` seeds, docs/benchmarks.md, "Motion, sixth round"; before them it cost
-    mAP). The ``camera`` variant pastes nothing: the pasted objects exist
-    only in the lidar, and a camera model would be taught to find objects with no pixels. Every
+    mAP). The ``camera`` variant pastes nothing: the pasted objects exist only in the lidar, and
+    a camera model would be taught to find objects with no pixels. Every
     variant with a camera starts its image encoder from the one shipped for its camera
     (``clfbev/weights/``, made by ``scripts/pretrain_encoder.sh`` on dense labels): image
     features learned from scratch on a few thousand images do not find distant objects.
