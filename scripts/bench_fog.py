@@ -21,7 +21,7 @@ def bench_fog(quick: bool) -> dict:
     from simgen.lidar import LidarScanner
     from simgen.mitsuba_camera import actor_poses_at
     from simgen.pipeline import _renderer, build_world, degrade_image, degrade_sweep
-    from simgen.settings import MakeSettings
+    from simgen.settings import MakeSettings, weather_streams
     cfg = with_degradation(load_preset("urban"), fog=5)
     s = MakeSettings(cfg, 1, 0, 1, "v1.0-sim")
     world = build_world(s, 0)
@@ -36,11 +36,13 @@ def bench_fog(quick: bool) -> dict:
     scanner = LidarScanner(cfg.lidar, world)
     sweeps = [scanner.scan(0.05 * (k + 1), np.random.default_rng(k)) for k in range(10)]
 
+    weather = weather_streams(s, 0)
+
     def fog_one_sample():
         for i, (cam, rgb, depth) in enumerate(frames):
-            degrade_image(rgb, depth, cam, cfg, s, 0, i)
+            degrade_image(rgb, depth, cam, cfg, s, 0, i, weather, 0.5)
         for sw in sweeps:
-            degrade_sweep(sw, cfg, np.zeros(0, int), np.random.default_rng(0))
+            degrade_sweep(sw, cfg, np.zeros(0, int), np.random.default_rng(0), weather)
 
     ms = median_ms(fog_one_sample, 3 if quick else 7)
     sample_s = render_sample_s(quick)

@@ -112,6 +112,16 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--drop-sensor", default=None, metavar="CHANNEL[,CHANNEL]",
                     help="failed sensors: a black image / an empty point cloud (the records and files exist)")
 
+    wx = mk.add_argument_group("weather (overrides the preset's 'weather' section; the world, poses and labels "
+                               "stay the clear day's, so a set pairs with the clean run of the same seed)")
+    wx.add_argument("--rain", type=float, default=None, metavar="MM_PER_H",
+                    help="rain rate, 0-200 mm/h (0 = none): Marshall-Palmer drops on both sensors, a wet road")
+    wx.add_argument("--snow", type=float, default=None, metavar="MM_PER_H",
+                    help="snowfall rate, 0-20 mm/h of melted water (0 = none): Gunn-Marshall flakes along each "
+                         "lidar beam and in front of the cameras")
+    wx.add_argument("--night", action="store_true", default=None,
+                    help="night: street and vehicle lights, a camera's photon and read noise (the lidar is unchanged)")
+
     sub.add_parser("presets", help="list the presets, one line each")
 
     ck = sub.add_parser("check", help="validate a dataroot: tables, files and token integrity")
@@ -159,7 +169,7 @@ def _run(args) -> int:
 
 
 def _make(args) -> int:
-    from .config import load_preset, with_degradation, with_renderer, with_resolution
+    from .config import load_preset, with_degradation, with_renderer, with_resolution, with_weather
     from .make import make
     from .settings import MakeSettings
     cfg = load_preset(args.preset)
@@ -169,6 +179,7 @@ def _make(args) -> int:
     cfg = with_degradation(cfg, fog=args.fog, fog_visibility=args.fog_visibility, lens_occlusion=args.lens_occlusion,
                            beam_drop=args.beam_drop, lidar_fov=args.lidar_fov, drop_sensors=args.drop_sensor,
                            occlusion=args.occlusion)
+    cfg = with_weather(cfg, rain=args.rain, snow=args.snow, night=args.night)
     if not re.fullmatch(r"[A-Za-z0-9._-]+", args.version):
         raise ConfigError(f"--version {args.version!r}: use letters, digits, '.', '_' and '-' only")
     if args.ray is not None:

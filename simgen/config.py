@@ -163,6 +163,42 @@ class DegradeConfig:
         return ("Degraded: " + "; ".join(parts) + ".") if parts else ""
 
 
+@dataclass(frozen=True)
+class WeatherConfig:
+    """Weather (simgen/weather/; derivations in docs/weather.md). Like the degradation it acts
+    on the sensors only: the world, the poses and the labels stay those of the clear day, and
+    each model draws from its own seeded stream, so a rainy set pairs with the clean one.
+
+    rain : rain rate in mm/h (0 = none): drops from Marshall-Palmer's size distribution.
+    snow : snowfall rate in mm/h of melted water (0 = none): flakes after Gunn and Marshall.
+    night : the sun below the horizon, street and vehicle lights, a camera's photon and read
+    noise at a night exposure; the lidar, an active sensor, is unchanged.
+    """
+    rain: float = field(default=0.0, metadata=allowed(0.0, 200.0))
+    snow: float = field(default=0.0, metadata=allowed(0.0, 20.0))
+    night: bool = False
+
+    @property
+    def active(self) -> bool:
+        return self != WeatherConfig()
+
+    @property
+    def particles(self) -> bool:
+        """Rain or snow: the camera models need each pixel's range."""
+        return self.rain > 0 or self.snow > 0
+
+    def describe(self) -> str:
+        """One line for the scene description ('' in clear weather by day)."""
+        parts = []
+        if self.rain > 0:
+            parts.append(f"rain {self.rain:g} mm/h")
+        if self.snow > 0:
+            parts.append(f"snowfall {self.snow:g} mm/h water equivalent")
+        if self.night:
+            parts.append("night")
+        return ("Weather: " + "; ".join(parts) + ".") if parts else ""
+
+
 def check_channels(text: str, where: str) -> None:
     """Refuse unknown sensor channel names in a drop_sensors list."""
     bad = [c for c in (x.strip() for x in text.split(",")) if c and c not in SENSOR_CHANNELS]
@@ -180,6 +216,7 @@ class SceneConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     lidar: LidarConfig = field(default_factory=LidarConfig)
     degrade: DegradeConfig = field(default_factory=DegradeConfig)
+    weather: WeatherConfig = field(default_factory=WeatherConfig)
     name: str = field(default="custom", metadata={"internal": True})
     source: str = field(default="", metadata={"internal": True})
 
@@ -286,6 +323,7 @@ def load_preset(name_or_path: str) -> SceneConfig:
         raise ConfigError(f"{path}: expected a mapping at the top level")
     cfg = _build(SceneConfig, data, f"{path}:")
     check_channels(cfg.degrade.drop_sensors, f"{path}: degrade.drop_sensors")
+    check_weather_renderer(cfg, f"{path}: weather.night")
     name = path.stem if name_or_path in presets else str(path)
     return dataclasses.replace(cfg, name=name, source=path.read_text())
 
@@ -311,6 +349,28 @@ def with_degradation(cfg: SceneConfig, **flags) -> SceneConfig:
         else:
             values[name] = _check_number(value, hints[name], dict(meta[name].metadata), flag)
     return dataclasses.replace(cfg, degrade=dataclasses.replace(cfg.degrade, **values))
+
+
+def with_weather(cfg: SceneConfig, rain: float | None = None, snow: float | None = None,
+                 night: bool | None = None) -> SceneConfig:
+    """A copy of ``cfg`` whose weather fields given (not None) replace the preset's, each
+    validated like the preset field; errors name the command-line flag. Night is refused with
+    the Mitsuba renderer, which has no artificial lights or sensor noise model."""
+    meta = {f.name: dict(f.metadata) for f in fields(WeatherConfig)}
+    values = {name: _check_number(value, float, meta[name], f"--{name}")
+              for name, value in (("rain", rain), ("snow", snow)) if value is not None}
+    if night is not None:
+        values["night"] = bool(night)
+    out = dataclasses.replace(cfg, weather=dataclasses.replace(cfg.weather, **values))
+    check_weather_renderer(out, "--night")
+    return out
+
+
+def check_weather_renderer(cfg: SceneConfig, where: str) -> None:
+    """Night needs the rasteriser's shading (street and vehicle lights, the sensor noise)."""
+    if cfg.weather.night and cfg.camera.renderer != "pyrender":
+        raise ConfigError(f"{where}: night is rendered by the pyrender camera only, not by "
+                          f"{cfg.camera.renderer!r} (use --renderer pyrender)")
 
 
 def with_renderer(cfg: SceneConfig, renderer: str | None, spp: int | None) -> SceneConfig:

@@ -68,8 +68,8 @@ def _flatten(d: dict, prefix: str = "") -> dict:
 
 
 def write_degradation_record(s: MakeSettings, dataroot: Path) -> None:
-    """``<version>/degradation.json``: every degradation setting, the derived fog extinction and
-    visibility, the dropped rings per scene, and the pairing contract. Written for clean sets
+    """``<version>/degradation.json``: every degradation and weather setting, the derived fog
+    extinction and visibility, the dropped rings per scene, and the pairing contract. Written for clean sets
     too (all off), so that a set always says what it is."""
     d = s.cfg.degrade
     rings = {f"scene-{i:04d}": [int(r) for r in degradation_stream(s, i)[0]]
@@ -80,6 +80,7 @@ def write_degradation_record(s: MakeSettings, dataroot: Path) -> None:
         "fog_visibility_m": visibility_of(d.alpha) if d.alpha > 0 else None,
         "failed_sensors": list(d.dropped),
         "dropped_rings": rings,
+        "weather": dataclasses.asdict(s.cfg.weather),
         "preset": s.cfg.name,
         "seed": s.seed,
         "labels": ("clean world: sample_annotation, instance, sample and ego_pose equal those of the "

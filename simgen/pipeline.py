@@ -25,7 +25,7 @@ from .layout import Grid
 from .lidar import LidarScanner, Sweep
 from .occluders import add_occluders
 from .scene import SWEEPS_PER_KEYFRAME, keyframe_times, sample_world, sweep_end_times
-from .settings import MakeSettings, degradation_stream, scene_rng
+from .settings import MakeSettings, WeatherStreams, degradation_stream, scene_rng, weather_streams
 from .world import CATEGORY, World
 
 if TYPE_CHECKING:                  # pyrender is imported by the worker that renders, when it renders
@@ -35,12 +35,13 @@ ANNOTATION_RANGE = 80.0
 BASE_TIMESTAMP_US = 1_600_000_000_000_000
 
 
-def degrade_sweep(sweep: Sweep, cfg: SceneConfig, rings: np.ndarray,
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def degrade_sweep(sweep: Sweep, cfg: SceneConfig, rings: np.ndarray, rng: np.random.Generator,
+                  weather: WeatherStreams) -> tuple[np.ndarray, np.ndarray]:
     """The points (n, 5) a degraded LIDAR_TOP delivers for a clean ``sweep``, and their lidarseg
-    labels (n,) uint8: fog (its returns are labelled noise), then the dropped rings and the field
-    of view; no points at all if the lidar failed. ``rng`` is the scene's degradation stream (the
-    clean sensor stream is left untouched)."""
+    labels (n,) uint8: fog, rain and snowfall (their clutter returns are labelled noise), then the
+    dropped rings and the field of view; no points at all if the lidar failed. ``rng`` is the
+    scene's degradation stream and ``weather`` its weather streams (the clean sensor stream is
+    left untouched)."""
     d = cfg.degrade
     if rig.LIDAR in d.dropped:
         return np.zeros((0, 5), np.float32), np.zeros(0, np.uint8)
@@ -51,6 +52,7 @@ def degrade_sweep(sweep: Sweep, cfg: SceneConfig, rings: np.ndarray,
         pts, is_fog = degrade.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, d.alpha,
                                         cfg.lidar.min_return, cfg.lidar.intensity_ref_range, rng)
         pts[is_fog, 5] = lidarseg.NOISE
+    # Rain, then snowfall: each a pure function of the points and its own stream.
     if len(rings):
         pts = degrade.drop_rings(pts, rings)
     if d.lidar_fov < 360:
@@ -60,18 +62,21 @@ def degrade_sweep(sweep: Sweep, cfg: SceneConfig, rings: np.ndarray,
 
 
 def degrade_image(rgb: np.ndarray, depth: np.ndarray, cam: rig.Camera, cfg: SceneConfig, s, idx: int,
-                  cam_index: int) -> np.ndarray:
-    """The image a degraded camera delivers: fog on the rendered range, then lens dirt (the same
-    blobs in every frame of a scene: their rng is keyed on the scene and the camera); black if
-    the camera failed."""
+                  cam_index: int, weather: WeatherStreams, t_cam: float) -> np.ndarray:
+    """The image a degraded camera delivers at scene time ``t_cam``: fog on the rendered range,
+    then rain and snowfall, then lens dirt (the same blobs in every frame of a scene: their rng is
+    keyed on the scene and the camera), then the night's sensor noise; black if the camera
+    failed. ``weather`` holds the scene's weather streams."""
     from .camera import depth_to_range
     d = cfg.degrade
     if cam.channel in d.dropped:
         return np.zeros_like(rgb)
     if d.alpha > 0 and cfg.camera.renderer == "pyrender":   # Mitsuba renders fog as a medium
         rgb = degrade.fog_image(rgb, depth_to_range(depth, cam.K), d.alpha)
+    # Rain, then snowfall, on the rendered range.
     if d.lens_occlusion:
         rgb = degrade.lens_dirt(rgb, d.lens_occlusion, scene_rng(s.seed, idx, 100 + cam_index))
+    # The night's sensor noise, last: it is the camera's own.
     return rgb
 
 
@@ -156,6 +161,7 @@ class Sensors:
     rng_sensor: np.random.Generator
     dropped_rings: np.ndarray      # (k,) int, the rings a beam-drop lidar loses
     rng_degrade: np.random.Generator
+    weather: WeatherStreams
     face_class: np.ndarray | None  # (F,) uint8 lidarseg class per rendered face; None without dense labels
 
 
@@ -197,7 +203,7 @@ def _scene_records(s: MakeSettings, idx: int, threads: int) -> writer.SceneRecor
     # on them) are the same bytes with or without it: paired datasets.
     dropped_rings, rng_degrade = degradation_stream(s, idx)
     face_class = labels.face_classes(world, renderer.face_owner) if s.dense_labels else None
-    sensors = Sensors(renderer, scanner, rng_sensor, dropped_rings, rng_degrade, face_class)
+    sensors = Sensors(renderer, scanner, rng_sensor, dropped_rings, rng_degrade, weather_streams(s, idx), face_class)
 
     records = writer.SceneRecords(idx)
     scene = _add_scene_rows(s, idx, world, records)
@@ -230,7 +236,8 @@ def _add_scene_rows(s: MakeSettings, idx: int, world: World, records: writer.Sce
     rows["calibrated_sensor"].extend(calib.values())
     rows["sample"].extend(writer.sample_rows(scene.sample_tokens, [scene.us(t) for t in key_times], scene_tok))
     description = " ".join(filter(None, [
-        f"simgen preset {s.cfg.name}, seed {s.seed}, scene {idx}. {world.description}", s.cfg.degrade.describe()]))
+        f"simgen preset {s.cfg.name}, seed {s.seed}, scene {idx}. {world.description}", s.cfg.degrade.describe(),
+        s.cfg.weather.describe()]))
     rows["scene"].append(writer.scene_row(scene_tok, log_tok, scene.sample_tokens, f"scene-{idx:04d}", description))
     return scene
 
@@ -272,8 +279,8 @@ def _add_sweep(scene: SceneContext, sensors: Sensors, records: writer.SceneRecor
     sd_tok = scene.token("sd", rig.LIDAR, j)
     folder = "samples" if is_key else "sweeps"
     filename = f"{folder}/{rig.LIDAR}/{scene.log_name}__{rig.LIDAR}__{scene.us(t_end)}.pcd.bin"
-    points, point_labels = (degrade_sweep(sweep, cfg, sensors.dropped_rings, sensors.rng_degrade)
-                            if cfg.degrade.active else (sweep.points_lidar, sweep.label))
+    points, point_labels = (degrade_sweep(sweep, cfg, sensors.dropped_rings, sensors.rng_degrade, sensors.weather)
+                            if cfg.degrade.active or cfg.weather.active else (sweep.points_lidar, sweep.label))
     pose = _add_sensor_file(scene, records, SensorFile(rig.LIDAR, sd_tok, t_end, k_sample, is_key, filename,
                                                        writer.encode_pointcloud(points)))
     if not is_key:
@@ -326,14 +333,14 @@ def _add_cameras(scene: SceneContext, sensors: Sensors, records: writer.SceneRec
         b = world.boxes_at(t_cam)
         poses = geometry.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])     # (n, 4, 4) T_global_from_box
         pose_of = {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate}
-        with_depth = cfg.degrade.alpha > 0 or scene.s.dense_labels
+        with_depth = cfg.degrade.alpha > 0 or cfg.weather.particles or scene.s.dense_labels
         rgb, depth, ids = sensors.renderer.render(cam, T_global_from_cam, pose_of, with_depth=with_depth, lazy_ids=True)
         if cfg.camera.renderer == "mitsuba":
             # Path-traced rgb; the labels keep the rasterised id pass, so they do not depend on
             # the renderer (the two agree geometrically: tests/simgen/test_mitsuba.py).
             rgb, _ = _mitsuba(cfg).render(world, cam, T_global_from_cam, pose_of, cfg.degrade.alpha, with_ids=False)
-        if cfg.degrade.active:
-            rgb = degrade_image(rgb, depth, cam, cfg, scene.s, scene.idx, cam_index)
+        if cfg.degrade.active or cfg.weather.active:
+            rgb = degrade_image(rgb, depth, cam, cfg, scene.s, scene.idx, cam_index, sensors.weather, t_cam)
         filename = f"samples/{cam.channel}/{scene.log_name}__{cam.channel}__{scene.us(t_cam)}.jpg"
         sd_tok = scene.token("sd", cam.channel, key_frame.k_sample)
         jpeg = writer.encode_jpeg(rgb, cfg.camera.jpeg_quality)

@@ -24,10 +24,12 @@ class MakeSettings:
 
     def fingerprint(self) -> dict:
         """The settings a resumed run must share with the parts already written. Dense labels
-        enter it only when on, so a set made without them keeps the fingerprint (and the
-        settings file) that it had before the option existed."""
+        and the weather enter it only when on, so a set made without them keeps the fingerprint
+        (and the settings file) that it had before the options existed."""
         d = dataclasses.asdict(self.cfg)
         d.pop("source")
+        if not self.cfg.weather.active:    # likewise the weather: a clear-day set keeps its fingerprint
+            d.pop("weather")
         fp = {"cfg": d, "seed": self.seed, "samples_per_scene": self.samples_per_scene,
               "version": self.version, "val_fraction": self.val_fraction}
         if self.dense_labels:
@@ -37,7 +39,8 @@ class MakeSettings:
 
 def scene_rng(seed: int, idx: int, stream: int) -> np.random.Generator:
     """Independent generators per (seed, scene, stream): 0 = world, 1 = sensors, 2 = degradation,
-    3 = occluders, 100 + camera index = that camera's lens dirt."""
+    3 = occluders, 4-8 = the weather (:class:`WeatherStreams`), 100 + camera index = that
+    camera's lens dirt."""
     return np.random.default_rng(np.random.SeedSequence([seed, idx, stream]))
 
 
@@ -51,3 +54,19 @@ def degradation_stream(s: MakeSettings, idx: int) -> tuple[np.ndarray, np.random
     n_drop = s.cfg.degrade.beam_drop
     rings = choose_rings(n_drop, rng) if n_drop else np.zeros(0, int)
     return rings, rng
+
+
+@dataclass
+class WeatherStreams:
+    """A scene's weather generators, one per model and sensor, so that turning one model on
+    changes no draw of another (nor of the world, the clean sensors or the degradation)."""
+    rain_lidar: np.random.Generator
+    snow_lidar: np.random.Generator
+    rain_camera: np.random.Generator
+    snow_camera: np.random.Generator
+    night_camera: np.random.Generator
+
+
+def weather_streams(s: MakeSettings, idx: int) -> WeatherStreams:
+    """Scene ``idx``'s weather streams 4-8."""
+    return WeatherStreams(*(scene_rng(s.seed, idx, stream) for stream in range(4, 9)))

@@ -14,7 +14,13 @@ from simgen import lidarseg
 from simgen.config import load_preset, with_degradation
 from simgen.lidar import LidarScanner
 from simgen.pipeline import MakeSettings, build_world, degrade_sweep
+from simgen.settings import weather_streams
 from simgen.rig import T_ego_from_lidar
+
+
+def _streams(cfg):
+    """A scene's weather streams (unused in clear weather, drawn as the pipeline draws them)."""
+    return weather_streams(MakeSettings(cfg, 1, 0, 1, "v1.0-sim"), 0)
 
 
 def test_camera_fog_is_koschmieder_exactly():
@@ -215,7 +221,7 @@ def test_lidar_fog_on_a_scene_labels_and_places_the_fog_returns(clean_sweep):
     cfg, sweep = clean_sweep
     for sev in range(1, 6):
         c = with_degradation(cfg, fog=sev)
-        pts, seg = degrade_sweep(sweep, c, np.zeros(0, int), np.random.default_rng(1))
+        pts, seg = degrade_sweep(sweep, c, np.zeros(0, int), np.random.default_rng(1), _streams(c))
         same, is_fog = degrade.fog_lidar(sweep.points_lidar, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar,
                                    degrade.FOG_ALPHA[sev], cfg.lidar.min_return, cfg.lidar.intensity_ref_range,
                                    np.random.default_rng(1))
@@ -340,7 +346,8 @@ def test_one_alpha_drives_camera_and_lidar():
     cam = rig.cameras((160, 90))[0]
     depth = np.full((90, 160), 40.0, np.float32)
     J = np.full((90, 160, 3), 30, np.uint8)
-    img = degrade_image(J, depth, cam, cfg, MakeSettings(cfg, 1, 7, 1, "v1.0-sim"), 0, 0).astype(float)
+    s = MakeSettings(cfg, 1, 7, 1, "v1.0-sim")
+    img = degrade_image(J, depth, cam, cfg, s, 0, 0, weather_streams(s, 0), 0.0).astype(float)
     d = depth_to_range(depth, cam.K)
 
     def pixel(a):
@@ -357,7 +364,7 @@ def test_one_alpha_drives_camera_and_lidar():
     ref2 = cfg.lidar.intensity_ref_range ** 2
     pts[:, 3] = np.round(255 * np.clip(0.9 / ranges**2 * ref2, 0, 1))
     sweep = Sweep(pts, np.zeros(n), np.zeros(n, np.int32), rho, np.ones(n), ranges, dirs, np.ones(n, np.uint8))
-    got, _ = degrade_sweep(sweep, cfg, np.zeros(0, int), np.random.default_rng(0))
+    got, _ = degrade_sweep(sweep, cfg, np.zeros(0, int), np.random.default_rng(0), _streams(cfg))
 
     def intensity(a):
         return np.round(255 * np.clip(0.9 / ranges**2 * np.exp(-2 * a * ranges) * ref2, 0, 1))
@@ -382,7 +389,7 @@ def test_removed_fog_background_gain_is_refused(tmp_path):
 def test_beam_drop_and_sector(clean_sweep):
     cfg, sweep = clean_sweep
     rings = degrade.choose_rings(5, np.random.default_rng(3))
-    pts, seg = degrade_sweep(sweep, with_degradation(cfg, beam_drop=5), rings, np.random.default_rng(1))
+    pts, seg = degrade_sweep(sweep, with_degradation(cfg, beam_drop=5), rings, np.random.default_rng(1), _streams(cfg))
     keep = ~np.isin(sweep.points_lidar[:, 4], rings)
     np.testing.assert_array_equal(seg, sweep.label[keep])          # the labels follow their points
     kept = set(np.unique(pts[:, 4]).astype(int))
@@ -391,7 +398,8 @@ def test_beam_drop_and_sector(clean_sweep):
     n_expected = (~np.isin(sweep.points_lidar[:, 4], rings)).sum()
     assert len(pts) == n_expected
 
-    pts, seg = degrade_sweep(sweep, with_degradation(cfg, lidar_fov=90.0), rings[:0], np.random.default_rng(1))
+    pts, seg = degrade_sweep(sweep, with_degradation(cfg, lidar_fov=90.0), rings[:0], np.random.default_rng(1),
+                             _streams(cfg))
     # The ego's forward axis in the LIDAR_TOP frame: about +y (the mount is rotated by -90 deg).
     fwd = T_ego_from_lidar()[:3, :3].T @ np.array([1.0, 0.0, 0.0])
     assert fwd[1] > 0.99
@@ -403,7 +411,8 @@ def test_beam_drop_and_sector(clean_sweep):
     assert np.abs(azimuth(pts)).max() <= 45.0 and len(pts) > 0
     assert len(pts) == (np.abs(azimuth(sweep.points_lidar)) <= 45.0).sum()
     np.testing.assert_array_equal(seg, sweep.label[np.abs(azimuth(sweep.points_lidar)) <= 45.0])
-    pts, seg = degrade_sweep(sweep, with_degradation(cfg, drop_sensors="LIDAR_TOP"), rings[:0], np.random.default_rng(1))
+    pts, seg = degrade_sweep(sweep, with_degradation(cfg, drop_sensors="LIDAR_TOP"), rings[:0],
+                             np.random.default_rng(1), _streams(cfg))
     assert len(pts) == 0 and len(seg) == 0
 
 
