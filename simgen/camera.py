@@ -29,8 +29,8 @@ import numpy as np
 from . import geometry, sun as sunlight
 from .config import CameraConfig
 from .face_meshes import STATIC_TILE, bounding_spheres, coded_mesh, depth_mesh, static_tiles
-from .gl_readback import (read_single_sample_framebuffer, read_window_depth, single_sample_framebuffers,
-                          window_from_linear_depth)
+from .gl_readback import (framebuffers_on_osmesa, read_single_sample_framebuffer, read_window_depth,
+                          single_sample_framebuffers)
 from .rig import Camera
 from .world import World
 
@@ -78,11 +78,10 @@ class Renderer:
         gl_renderer = self._gl._renderer
         self._drawn: list = []
         gl_renderer._sorted_mesh_nodes = lambda scene: self._drawn
-        self._readers = None
-        if self._gl._platform.supports_framebuffers():      # EGL; OSMesa reads its own window buffer
-            self._readers = {d: types.MethodType(functools.partial(read_single_sample_framebuffer, with_depth=d),
-                                                 gl_renderer) for d in (False, True)}
-            self._readers["window"] = types.MethodType(read_window_depth, gl_renderer)
+        framebuffers_on_osmesa(self._gl)      # OSMesa renders and reads back as EGL does
+        self._readers = {d: types.MethodType(functools.partial(read_single_sample_framebuffer, with_depth=d),
+                                             gl_renderer) for d in (False, True)}
+        self._readers["window"] = types.MethodType(read_window_depth, gl_renderer)
         self.scene = None
         self._world_key = None
 
@@ -210,8 +209,7 @@ class Renderer:
             self._drawn.append(node)
         self._drawn += [self.static_nodes[i] for i in tiles]
         shadows = self.cfg.shadows
-        if self._readers is not None:
-            self._gl._renderer._read_main_framebuffer = self._readers[with_depth or shadows]
+        self._gl._renderer._read_main_framebuffer = self._readers[with_depth or shadows]
         coded, depth = self._gl.render(self.scene, flags=pr.RenderFlags.FLAT | pr.RenderFlags.RGBA)
         # RGBA bytes read as one little-endian uint32 per pixel: R | G << 8 | B << 16 | A << 24.
         face = np.ascontiguousarray(coded).view(np.uint32)[..., 0] & 0xFFFFFF
@@ -267,11 +265,8 @@ class Renderer:
         view = sunlight.fit_view(R, lo, hi, float(tops.max(initial=-np.inf)), (self.width, self.height))
         self.cam_node.camera = pr.OrthographicCamera(view.xmag, view.ymag, znear=view.znear, zfar=view.zfar)
         self.scene.set_pose(self.cam_node, view.T_global_from_view)
-        if self._readers is not None:
-            self._gl._renderer._read_main_framebuffer = self._readers["window"]
-            return self._gl.render(self.scene, flags=pr.RenderFlags.DEPTH_ONLY), view
-        depth = self._gl.render(self.scene, flags=pr.RenderFlags.DEPTH_ONLY)
-        return window_from_linear_depth(depth, view.znear, view.zfar), view
+        self._gl._renderer._read_main_framebuffer = self._readers["window"]
+        return self._gl.render(self.scene, flags=pr.RenderFlags.DEPTH_ONLY), view
 
     def _in_view(self, cam: Camera, T_global_from_cam, centres, radius) -> np.ndarray:
         """Whether each bounding sphere may touch the view frustum (conservative)."""

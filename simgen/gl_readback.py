@@ -1,8 +1,9 @@
 """pyrender's offscreen framebuffers made exact and cheap: single-sample buffers, read back
-directly on EGL, and OSMesa's depth turned back into window depth.
+directly, on EGL and on OSMesa alike.
 
 pyrender has no option for any of these, so :class:`simgen.camera.Renderer` patches its module
-function and stands these readers in for its instance's ``_read_main_framebuffer``.
+function and its platform instance and stands these readers in for its instance's
+``_read_main_framebuffer``.
 """
 from __future__ import annotations
 
@@ -28,8 +29,26 @@ def single_sample_framebuffers(renderer_module) -> None:
     renderer_module.glRenderbufferStorageMultisample = storage
 
 
+def framebuffers_on_osmesa(offscreen) -> None:
+    """Let pyrender's ``OffscreenRenderer`` render into framebuffer objects on OSMesa too, as it
+    does on EGL, so that one set of readers (below) serves both platforms.
+
+    pyrender's OSMesa platform says it has no framebuffer objects, so pyrender renders into
+    OSMesa's window buffer and reads it with ``read_color_buf``, which asks GL for RGB whatever
+    the render flags say: the id pass got (H, W, 3) bytes, which cannot be viewed as one uint32
+    face index per pixel, and the sun's orthographic depth came back linearised as a perspective
+    one. Yet the context pyrender creates on OSMesa is an OpenGL 3.3 core profile (its shaders
+    need it), and framebuffer objects are core since OpenGL 3.0. On the same Mesa rasteriser the
+    two platforms then give the same bytes (rgb, depth and ids; tests/simgen/test_osmesa.py).
+    ``offscreen``: a ``pyrender.OffscreenRenderer``; EGL's platform is left as it is.
+    """
+    platform = offscreen._platform
+    if not platform.supports_framebuffers():
+        platform.supports_framebuffers = lambda: True
+
+
 def read_single_sample_framebuffer(renderer, scene, flags, with_depth: bool = True):
-    """Stands in for pyrender's ``Renderer._read_main_framebuffer`` (EGL), given single-sample
+    """Stands in for pyrender's ``Renderer._read_main_framebuffer``, given single-sample
     buffers: read the render target directly, without pyrender's blit into a second framebuffer,
     and linearise depth with whole-array float32 arithmetic instead of boolean-mask indexing.
 
@@ -52,7 +71,7 @@ def read_single_sample_framebuffer(renderer, scene, flags, with_depth: bool = Tr
 
 
 def read_window_depth(renderer, scene, flags):
-    """Stands in for ``Renderer._read_main_framebuffer`` (EGL) in the shadow pass: the depth
+    """Stands in for ``Renderer._read_main_framebuffer`` in the shadow pass: the depth
     buffer as it is, (H, W) float32 window depth in [0, 1] (1 = nothing), top row first. The
     shadow camera is orthographic, so window depth is already linear in distance."""
     from OpenGL.GL import GL_DEPTH_COMPONENT, GL_FLOAT, GL_READ_FRAMEBUFFER, glBindFramebuffer, glReadPixels
