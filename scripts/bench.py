@@ -50,6 +50,10 @@ Keys (degradation and renderers):
                                 their rays, from the sensor at the sweep's end] (severity 1..5)
     _haze_returns               [fog returns, rays] at a visibility of 2,000 m
   mitsuba_s_per_image_800x450   one path-traced camera image (rgb pass) at mitsuba_spp
+  weather_sample_ratio_*        (only with --only weather, about 10 min) `make` of one urban scene
+                                (4 samples, 1600x900, one worker) under rain 50 mm/h, snowfall 2.5
+                                mm/h, night, and all three, over the clear day's; median of 3
+                                alternating pairs (_runs lists each pair's ratio)
   demo_total_s                  `bash scripts/demo.sh` from scratch (only with --only demo)
 Keys (cluster backend, only with --only ray, about 8 min):
   make_ray_overhead_pct         `make --ray` (a local Ray instance, 2 CPUs) against the local pool of 2
@@ -74,11 +78,12 @@ from bench_simgen import (
     bench_ray,
     bench_render,
     bench_scaling,
+    bench_weather,
     bench_worker_memory,
 )
 
 # Parts run only when named in --only: they take long or run the whole demo.
-NOT_BY_DEFAULT = ("demo", "scaling", "ray")
+NOT_BY_DEFAULT = ("demo", "scaling", "ray", "weather")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -88,7 +93,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--only", nargs="*", default=None,
                     help="subset: lidar render make memory clfbev eval fog mitsuba, or scaling (16-scene make "
                          "pairs, about 6 min) or demo (runs scripts/demo.sh, about 25 min): these two are not in "
-                         "the default set, nor is ray (`make --ray` against the local pool, about 8 min)")
+                         "the default set, nor is ray (`make --ray` against the local pool, about 8 min) or weather "
+                         "(a sample under rain, snow and night against the clear day, about 10 min)")
     return ap.parse_args(argv)
 
 
@@ -100,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
              "clfbev": lambda: bench_clfbev(args.quick), "eval": lambda: bench_eval(args.quick),
              "fog": lambda: bench_fog(args.quick), "mitsuba": lambda: bench_mitsuba(args.quick),
              "demo": lambda: bench_demo(args.quick), "scaling": lambda: bench_scaling(args.quick),
-             "ray": lambda: bench_ray(args.quick)}
+             "ray": lambda: bench_ray(args.quick), "weather": lambda: bench_weather(args.quick)}
     result = {"machine": {"cpus": os.cpu_count()}}
     for name, run in parts.items():
         chosen = name not in NOT_BY_DEFAULT if args.only is None else name in args.only

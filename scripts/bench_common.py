@@ -41,10 +41,11 @@ def simgen_make(out: Path | str, *options: str) -> None:
     subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
 
 
-def run_make(out: Path, scenes: int, samples: int, workers: int, resolution: str, preset: str = "urban") -> float:
-    """Seconds of one ``simgen make`` (``resolution`` "" keeps the preset's)."""
+def run_make(out: Path, scenes: int, samples: int, workers: int, resolution: str, preset: str = "urban",
+             flags: tuple[str, ...] = ()) -> float:
+    """Seconds of one ``simgen make`` (``resolution`` "" keeps the preset's; ``flags`` are added)."""
     cmd = [sys.executable, "-m", "simgen.cli", "make", "--out", str(out), "--scenes", str(scenes),
-           "--samples-per-scene", str(samples), "--workers", str(workers), "--preset", preset, "--quiet"]
+           "--samples-per-scene", str(samples), "--workers", str(workers), "--preset", preset, "--quiet", *flags]
     if resolution:
         cmd += ["--resolution", resolution]
     t = time.perf_counter()

@@ -124,6 +124,31 @@ def bench_make(quick: bool) -> dict:
             "make_1_worker_s": m["t1"], "make_2_workers_s": m["t2"]}
 
 
+WEATHER_CONDITIONS = {"rain50": ("--rain", "50"), "snow2.5": ("--snow", "2.5"), "night": ("--night",),
+                      "rain25_snow1_night": ("--rain", "25", "--snow", "1", "--night")}
+
+
+def bench_weather(quick: bool) -> dict:
+    """A whole 1600x900 sample under each weather against the clear day: `make` of one urban
+    scene (one worker), clear and weather alternately with a fresh dataroot each time, so each
+    pair's ratio sees the same machine load; the median ratio and every pair are reported."""
+    samples, pairs = (2, 1) if quick else (4, 3)
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for name, flags in WEATHER_CONDITIONS.items():
+            ratios = []
+            for r in range(pairs):
+                clear = run_make(tmp / f"clear_{name}_{r}", 1, samples, 1, "1600x900")
+                weather = run_make(tmp / f"{name}_{r}", 1, samples, 1, "1600x900", flags=flags)
+                ratios.append(weather / clear)
+                shutil.rmtree(tmp / f"clear_{name}_{r}")
+                shutil.rmtree(tmp / f"{name}_{r}")
+            out[f"weather_sample_ratio_{name}"] = float(np.median(ratios))
+            out[f"weather_sample_ratio_{name}_runs"] = [round(x, 3) for x in ratios]
+    return out
+
+
 def bench_scaling(quick: bool) -> dict:
     """The worker speedup on a longer run (16 scenes x 6 samples, 800x450), where the fixed
     costs of a run (interpreter, imports, compiled-kernel load, the last scene's wait) weigh

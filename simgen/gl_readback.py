@@ -78,11 +78,3 @@ def read_window_depth(renderer, scene, flags):
     w, h = renderer._main_fb_dims
     glBindFramebuffer(GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
     return np.frombuffer(glReadPixels(0, 0, w, h, GL_DEPTH_COMPONENT, GL_FLOAT), np.float32).reshape(h, w)[::-1]
-
-
-def window_from_linear_depth(depth: np.ndarray, znear: float, zfar: float) -> np.ndarray:
-    """Undo pyrender's own reader (OSMesa), which linearises every depth buffer as a perspective
-    one: (H, W) float32 its output -> window depth in [0, 1] (0 read back as 1 = nothing)."""
-    d = depth.astype(np.float64)
-    ndc = (zfar + znear - 2.0 * znear * zfar / np.where(d > 0, d, np.inf)) / (zfar - znear)
-    return np.where(d > 0, (ndc + 1.0) / 2.0, 1.0).astype(np.float32)

@@ -16,6 +16,7 @@ CLASS_COLORS = {  # BGR
     "vehicle.motorcycle": (180, 0, 200), "vehicle.bicycle": (60, 20, 220), "human.pedestrian.adult": (230, 60, 20),
     "movable_object.trafficcone": (0, 200, 255), "movable_object.barrier": (90, 90, 90),
 }
+NOISE_BGR = (255, 255, 255)
 # devkit corner order: 0-3 the front face, 4-7 the back face
 EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)]
 
@@ -66,7 +67,9 @@ def point_colors(nusc, sd_token: str, pts: np.ndarray) -> tuple[np.ndarray, str]
             raise DataError(f"{path}: {len(labels)} lidarseg labels for a sweep of {pts.shape[1]} points")
         palette = np.array([nusc.colormap[nusc.lidarseg_idx2name_mapping[i]][::-1]
                             for i in range(len(nusc.lidarseg_idx2name_mapping))], np.uint8)
-        return palette[np.minimum(labels, len(palette) - 1)], "lidarseg colours"
+        # The devkit's colour of "noise" (the weather's clutter) is black: invisible on this BEV.
+        palette[nusc.lidarseg_name2idx_mapping["noise"]] = NOISE_BGR
+        return palette[np.minimum(labels, len(palette) - 1)], "lidarseg colours, noise white"
     shade = np.clip(80 + pts[3] * 0.7 + (pts[2] + 2) * 25, 60, 255).astype(np.uint8)
     return np.stack([shade] * 3, 1), "intensity"
 

@@ -148,14 +148,3 @@ def test_preset_switch(tmp_path):
     bad.write_text("camera:\n  shadows: 1\n")
     with pytest.raises(ConfigError, match=r"camera\.shadows: expected true or false, got 1"):
         load_preset(str(bad))
-
-
-def test_osmesa_depth_goes_back_to_window_depth():
-    """pyrender's own reader (OSMesa) linearises the shadow pass's depth as a perspective one;
-    the shadow test undoes it to the orthographic window depth."""
-    from simgen.gl_readback import window_from_linear_depth
-    n, f = 0.5, 300.0
-    window = np.array([[0.0, 0.25, 0.5], [0.9, 0.999, 1.0]], np.float32)
-    ndc = 2.0 * window.astype(np.float64) - 1.0
-    linear = np.where(window < 1.0, 2.0 * n * f / (f + n - ndc * (f - n)), 0.0).astype(np.float32)
-    np.testing.assert_allclose(window_from_linear_depth(linear, n, f), window, atol=2e-6)
