@@ -282,10 +282,12 @@ class NuScenesDetection(torch.utils.data.Dataset):
         if self.corruptions:
             T_ego_from_lidar = self._T_parent_from(lidar_sd, "calibrated_sensor")
             forward_lidar = T_ego_from_lidar[:3, :3].T @ np.array([1.0, 0, 0])
+            up_lidar = T_ego_from_lidar[:3, :3].T @ np.array([0, 0, 1.0])
             points = corruptions.corrupt_points(points, rings, forward_lidar,
                                                 corruptions.lidar_corruptions(self.corruptions), sample["token"])
             images, T_lidar_from_cam = corruptions.corrupt_cameras(
-                images, T_lidar_from_cam, corruptions.camera_corruptions(self.corruptions), sample["token"])
+                images, T_lidar_from_cam, K, A, up_lidar, corruptions.camera_corruptions(self.corruptions),
+                sample["token"])
         boxes, labels = self._boxes(sample, T_lidar_from_global)
         return Sample(
             images=images,
@@ -300,7 +302,8 @@ class NuScenesDetection(torch.utils.data.Dataset):
         )
 
     def lidar_and_boxes(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """What sample ``index`` holds without its cameras (and uncorrupted): points (n, 5),
+        """What sample ``index`` holds without its cameras (and without the corruptions applied after
+        loading; ``misalign`` and ``late`` change what is read, so they stay): points (n, 5),
         gt_boxes (M, 9) and gt_labels (M,), as :meth:`__getitem__` gives them. For work that
         needs no image (the GT-paste database): decoding the six JPEGs is most of a sample's
         load time."""
@@ -338,8 +341,18 @@ class NuScenesDetection(torch.utils.data.Dataset):
         """(4, 4) float64 transform of the ``ego_pose`` (T_global_from_ego) or
         ``calibrated_sensor`` (T_ego_from_sensor) record of sample_data ``sd``."""
         record = self.nusc.get(table, self._field("sample_data", sd, f"{table}_token"))
-        return transform_from(self._numbers(table, record, "translation", (3,)),
-                              self._numbers(table, record, "rotation", (4,)))
+        T = transform_from(self._numbers(table, record, "translation", (3,)),
+                           self._numbers(table, record, "rotation", (4,)))
+        # A ``misalign`` corruption: the loader believes a wrong calibration of that sensor.
+        if table == "calibrated_sensor" and self.corruptions:
+            T = corruptions.miscalibrated(T, sd["channel"], self.corruptions)
+        return T
+
+    def _file(self, sd: dict) -> Path:
+        """The sensor file read for sample_data ``sd``: its own, or an older one of its channel
+        under a ``late`` corruption (:func:`clfbev.corruptions.late_record`)."""
+        return self.root / self._field("sample_data", corruptions.late_record(sd, self.corruptions, self.nusc.get),
+                                       "filename")
 
     def _T_global_from_sensor(self, sd: dict) -> np.ndarray:
         """(4, 4) float64 T_global_from_X for a sample_data record X (its own ego pose)."""
@@ -352,7 +365,7 @@ class NuScenesDetection(torch.utils.data.Dataset):
         for cam in CAMERAS:
             sd = self.nusc.get("sample_data", sample["data"][cam])
             calib = self.nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
-            image, A = resize_and_crop(load_image(self.root / self._field("sample_data", sd, "filename")), (H, W))
+            image, A = resize_and_crop(load_image(self._file(sd)), (H, W))
             images.append(((image.astype(np.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1))
             Ks.append(np.asarray(self._numbers("calibrated_sensor", calib, "camera_intrinsic", (3, 3)), np.float64))
             Ts.append(T_lidar_from_global @ self._T_global_from_sensor(sd))
@@ -365,7 +378,7 @@ class NuScenesDetection(torch.utils.data.Dataset):
         chunks, rings, sd = [], [], key_sd
         key_time = self._numbers("sample_data", key_sd, "timestamp", ())
         for k in range(self.cfg.n_sweeps):
-            raw = load_points(self.root / self._field("sample_data", sd, "filename"))
+            raw = load_points(self._file(sd))
             xyz = raw[:, :3]
             if k > 0:   # the key sweep stays bit-exact: it is already in the key-frame lidar frame
                 T_key_from_sweep = T_lidar_from_global @ self._T_global_from_sensor(sd)

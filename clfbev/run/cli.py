@@ -229,7 +229,9 @@ def _image_path(text: str) -> Path:
 
 
 CORRUPT_HELP = ("beam_missing:1-32 | density:0-1 | fov:DEGREES | lidar_missing | camera_crash:1-6 | "
-                "frame_lost:0-1 | extrinsic_noise:DEG (deterministic per sample token)")
+                "frame_lost:0-1 | extrinsic_noise:DEG | motion_blur:PIXELS (1-100) | misalign:SENSOR:0-10 "
+                "(s deg about each ego axis, 0.02 s m along each) | late:SENSOR:FRAMES (1-20); SENSOR is LIDAR_TOP "
+                "or a camera channel, e.g. CAM_FRONT (clfbev/corruptions.py; deterministic per sample token)")
 
 
 def _corruption(text: str):
