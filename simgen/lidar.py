@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import functools
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
@@ -49,6 +49,12 @@ class Sweep:
     rho : (n,) surface reflectivity.  cos_inc : (n,) cosine of the incidence angle.
     range : (n,) measured range (m).  dir_lidar : (n, 3) unit ray directions, sensor frame at t_end.
     label : (n,) uint8 nuScenes-lidarseg class index (:mod:`simgen.lidarseg`).
+
+    The k rays that returned nothing (no surface, or one out of range or below the detection
+    threshold), for the weather, whose particles can echo in them: ``miss_origin``, ``miss_dir``
+    (k, 3) each ray's origin and unit direction (sensor frame at t_end), ``miss_ring`` (k,),
+    ``miss_time`` (k,) firing time (s) and ``miss_range`` (k,) the distance (m) to the surface it
+    met, inf for none.
     """
     points_lidar: np.ndarray
     time: np.ndarray
@@ -58,6 +64,11 @@ class Sweep:
     range: np.ndarray
     dir_lidar: np.ndarray
     label: np.ndarray
+    miss_origin: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    miss_dir: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    miss_ring: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    miss_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    miss_range: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def ray_pattern(cfg: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -354,7 +365,24 @@ class LidarScanner:
                              label[chunk], dirs, self.ring, t_col, origin_lidar, R_lidar_from_global, cfg.min_range,
                              cfg.max_range, cfg.min_return, cfg.intensity_ref_range, N_BEAMS)
 
-        return Sweep(*_join(self._map(points, len(dist))))
+        sweep = Sweep(*_join(self._map(points, len(dist))))
+        _add_missed_rays(sweep, dist, dirs, self.ring, t_col, origin_lidar, R_lidar_from_global)
+        return sweep
+
+
+def _add_missed_rays(sweep: Sweep, dist: np.ndarray, dirs: np.ndarray, ring: np.ndarray, t_col: np.ndarray,
+                     origin_lidar: np.ndarray, R_lidar_from_global: np.ndarray) -> None:
+    """Fill the sweep's ``miss_*`` fields from the sweep's rays (m,) in firing order: a return's ray
+    is its column (its firing time is its column's, which is unique) times N_BEAMS plus its ring."""
+    col = np.searchsorted(t_col, sweep.time)
+    returned = np.zeros(len(dist), bool)
+    returned[col * N_BEAMS + sweep.points_lidar[:, 4].astype(np.int64)] = True
+    miss = np.flatnonzero(~returned)
+    sweep.miss_origin = origin_lidar[miss // N_BEAMS]
+    sweep.miss_dir = dirs[miss] @ R_lidar_from_global.T
+    sweep.miss_ring = ring[miss]
+    sweep.miss_time = t_col[miss // N_BEAMS]
+    sweep.miss_range = dist[miss]
 
 
 def _join(parts: list[tuple]) -> tuple:

@@ -27,6 +27,7 @@ from .occluders import add_occluders
 from .scene import SWEEPS_PER_KEYFRAME, keyframe_times, sample_world, sweep_end_times
 from .settings import MakeSettings, WeatherStreams, degradation_stream, scene_rng, weather_streams
 from .world import CATEGORY, World
+from .weather import lidar_sweep, rain_lidar, snow_lidar
 
 if TYPE_CHECKING:                  # pyrender is imported by the worker that renders, when it renders
     from .camera import Renderer
@@ -45,14 +46,20 @@ def degrade_sweep(sweep: Sweep, cfg: SceneConfig, rings: np.ndarray, rng: np.ran
     d = cfg.degrade
     if rig.LIDAR in d.dropped:
         return np.zeros((0, 5), np.float32), np.zeros(0, np.uint8)
-    # The label rides along as a sixth column: the degradation steps keep or drop whole rows and
-    # carry the columns after the ring unchanged (their contract in simgen.degrade).
-    pts = np.concatenate([sweep.points_lidar, sweep.label[:, None].astype(np.float32)], axis=1)
+    # The label rides along as a sixth column, and each row's ray as a seventh (for the rain and
+    # snow): the degradation steps keep or drop whole rows and carry the columns after the ring
+    # unchanged (their contract in simgen.degrade).
+    pts = lidar_sweep.with_ray_column(np.concatenate([sweep.points_lidar, sweep.label[:, None].astype(np.float32)],
+                                                     axis=1))
     if d.alpha > 0:
         pts, is_fog = degrade.fog_lidar(pts, sweep.rho * sweep.cos_inc, sweep.range, sweep.dir_lidar, d.alpha,
                                         cfg.lidar.min_return, cfg.lidar.intensity_ref_range, rng)
         pts[is_fog, 5] = lidarseg.NOISE
     # Rain, then snowfall: each a pure function of the points and its own stream.
+    if cfg.weather.particles:
+        rays = lidar_sweep.sweep_rays(pts, sweep, cfg.lidar.min_return, d.alpha)
+        pts, rays = rain_lidar.rain_sweep(pts, rays, cfg.weather.rain, cfg.lidar, weather.rain_lidar)
+        pts, rays = snow_lidar.snow_sweep(pts, rays, cfg.weather.snow, cfg.lidar, weather.snow_lidar)
     if len(rings):
         pts = degrade.drop_rings(pts, rings)
     if d.lidar_fov < 360:
