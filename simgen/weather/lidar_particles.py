@@ -201,7 +201,8 @@ def strongest_returns(p_hard: np.ndarray, r_hard: np.ndarray, depth_hard: np.nda
     # The particles in front of each ray's echo shadow it: all of the ray's, unless the echo lies
     # before its last particle (an echo already moved to a particle or the fog); those searched.
     front = starts + counts
-    last = np.where(counts > 0, particles.range[np.maximum(front - 1, 0)], -np.inf)
+    last = np.full(m, -np.inf)
+    last[counts > 0] = particles.range[front[counts > 0] - 1]
     inside = np.flatnonzero(r_hard < last)
     if len(inside):
         key = particles.ray * _KEY + particles.range

@@ -79,6 +79,11 @@ def test_each_ray_reports_the_stronger_echo_by_the_lidar_equation():
     assert list(e.from_particle) == [True, True, False, False, False, True]
     assert list(e.kept) == [True, True, True, False, False, True]
     assert e.p_hard[4] < 1e-6 < p_hard[4]       # a flake inside the overlap's blind range shadows the car
+    # No particle at all: each echo attenuated by the continuous depth only.
+    none = LP.Particles(np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+    e = LP.strongest_returns(p_hard, r_hard, depth_hard, none, np.zeros(0), np.zeros(0), rho, 5e-6)
+    np.testing.assert_allclose(e.power, p_hard * np.exp(-depth_hard), rtol=1e-12)
+    assert not e.from_particle.any()
 
 
 def _brute_force(field, limit, p_hard, n_rays, min_return, rng):
