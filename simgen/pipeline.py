@@ -69,11 +69,14 @@ def degrade_sweep(sweep: Sweep, cfg: SceneConfig, rings: np.ndarray, rng: np.ran
 
 
 def degrade_image(rgb: np.ndarray, depth: np.ndarray, cam: rig.Camera, cfg: SceneConfig, s, idx: int,
-                  cam_index: int, weather: WeatherStreams, t_cam: float) -> np.ndarray:
+                  cam_index: int, weather: WeatherStreams, t_cam: float, paved: np.ndarray | None = None,
+                  v_cam: np.ndarray | None = None) -> np.ndarray:
     """The image a degraded camera delivers at scene time ``t_cam``: fog on the rendered range,
     then rain and snowfall, then lens dirt (the same blobs in every frame of a scene: their rng is
     keyed on the scene and the camera), then the night's sensor noise; black if the camera
-    failed. ``weather`` holds the scene's weather streams."""
+    failed. ``weather`` holds the scene's weather streams; ``paved`` (H, W) bool the pixels the
+    rain wets (None: no wet road), ``v_cam`` (3,) the camera's velocity in its frame (m/s; None:
+    at rest), which slants the rain's streaks."""
     from .camera import depth_to_range
     d = cfg.degrade
     if cam.channel in d.dropped:
@@ -81,6 +84,13 @@ def degrade_image(rgb: np.ndarray, depth: np.ndarray, cam: rig.Camera, cfg: Scen
     if d.alpha > 0 and cfg.camera.renderer == "pyrender":   # Mitsuba renders fog as a medium
         rgb = degrade.fog_image(rgb, depth_to_range(depth, cam.K), d.alpha)
     # Rain, then snowfall, on the rendered range.
+    if cfg.weather.particles:
+        from .weather import rain_camera, snow_camera
+        down_cam = cam.T_ego_from_cam[:3, :3].T @ np.array([0.0, 0.0, -1.0])    # the ego stays level
+        v = np.zeros(3) if v_cam is None else v_cam
+        sky = rain_camera.sky_colour(rgb, depth)
+        rgb = rain_camera.rain_image(rgb, depth, cam.K, cfg.weather.rain, weather.rain_camera, down_cam, v, paved, sky)
+        rgb = snow_camera.snow_image(rgb, depth, cam.K, cfg.weather.snow, weather.snow_camera, down_cam, v, sky)
     if d.lens_occlusion:
         rgb = degrade.lens_dirt(rgb, d.lens_occlusion, scene_rng(s.seed, idx, 100 + cam_index))
     # The night's sensor noise, last: it is the camera's own.
@@ -209,7 +219,8 @@ def _scene_records(s: MakeSettings, idx: int, threads: int) -> writer.SceneRecor
     # Degradation draws from its own stream, so the clean sensor data (and the labels counted
     # on them) are the same bytes with or without it: paired datasets.
     dropped_rings, rng_degrade = degradation_stream(s, idx)
-    face_class = labels.face_classes(world, renderer.face_owner) if s.dense_labels else None
+    # The faces' classes serve the dense labels and tell the rain which pixels are paved.
+    face_class = labels.face_classes(world, renderer.face_owner) if s.dense_labels or s.cfg.weather.rain > 0 else None
     sensors = Sensors(renderer, scanner, rng_sensor, dropped_rings, rng_degrade, weather_streams(s, idx), face_class)
 
     records = writer.SceneRecords(idx)
@@ -347,18 +358,33 @@ def _add_cameras(scene: SceneContext, sensors: Sensors, records: writer.SceneRec
             # the renderer (the two agree geometrically: tests/simgen/test_mitsuba.py).
             rgb, _ = _mitsuba(cfg).render(world, cam, T_global_from_cam, pose_of, cfg.degrade.alpha, with_ids=False)
         if cfg.degrade.active or cfg.weather.active:
-            rgb = degrade_image(rgb, depth, cam, cfg, scene.s, scene.idx, cam_index, sensors.weather, t_cam)
+            paved = _paved(ids, sensors.face_class) if cfg.weather.rain > 0 else None
+            rgb = degrade_image(rgb, depth, cam, cfg, scene.s, scene.idx, cam_index, sensors.weather, t_cam, paved,
+                                _camera_velocity(world, cam, t_cam))
         filename = f"samples/{cam.channel}/{scene.log_name}__{cam.channel}__{scene.us(t_cam)}.jpg"
         sd_tok = scene.token("sd", cam.channel, key_frame.k_sample)
         jpeg = writer.encode_jpeg(rgb, cfg.camera.jpeg_quality)
         _add_sensor_file(scene, records, SensorFile(cam.channel, sd_tok, t_cam, key_frame.k_sample, True, filename,
                                                     jpeg, width, height))
-        if sensors.face_class is not None:
+        if scene.s.dense_labels:
             _add_dense_labels(records, filename, depth, ids, sensors.face_class)
         id_images.append(ids)
         cam_poses.append(T_global_from_cam)
         actor_poses.append(poses[near])
     return id_images, cam_poses, actor_poses
+
+
+def _paved(ids, face_class: np.ndarray) -> np.ndarray:
+    """(H, W) bool, the paved pixels of a camera's :class:`~simgen.camera.IdImage` ``ids``."""
+    from .weather.rain_camera import paved_pixels
+    return paved_pixels(ids.face, face_class)
+
+
+def _camera_velocity(world: World, cam: rig.Camera, t: float, dt: float = 0.005) -> np.ndarray:
+    """(3,) the camera's velocity through the (still) air at scene time t, in its own frame (m/s):
+    a central difference of its position over +-dt, the ego's turning included."""
+    T_before, T_after = (world.ego_pose(t + e) @ cam.T_ego_from_cam for e in (-dt, dt))
+    return T_after[:3, :3].T @ (T_after[:3, 3] - T_before[:3, 3]) / (2 * dt)
 
 
 def _add_dense_labels(records: writer.SceneRecords, image_file: str, depth: np.ndarray, ids,
