@@ -99,10 +99,14 @@ class Renderer:
         scene = pr.Scene(ambient_light=np.zeros(3), bg_color=(0.0, 0.0, 0.0, 1.0))   # black = index 0 = sky
         colours, owners = [np.array([[int(255 * c) for c in SKY]], np.uint8)], [np.zeros(1, np.int32)]
         ambient, cos_sun = [colours[0]], [np.zeros(1)]      # the sky is never shadowed
+        # Each face's albedo and normal (box frame for a moving actor), kept for the night's shading.
+        self._night_faces = [(np.zeros((1, 3), np.uint8), np.zeros((1, 3)))]
+        self._night_tables, self.actor_faces = None, {}
         n_faces = 1
 
         def add(triangles, normals, albedo, sun_local, owner):
             nonlocal n_faces
+            self._night_faces.append((albedo, normals))
             colours.append(self._shaded(normals, albedo, sun_local))
             ambient.append(self._shaded(normals, albedo, np.zeros(3)))
             cos_sun.append(normals @ sun_local)
@@ -146,6 +150,7 @@ class Renderer:
                 normals, albedo = np.asarray(a.mesh.face_normals), np.asarray(a.mesh.visual.face_colors)[:, :3]
                 if np.ptp(world.yaw[i]) > 0:
                     self.turning[a.id] = (n_faces, normals, albedo)
+                self.actor_faces[a.id] = (n_faces, normals)
                 self.actor_nodes[a.id] = add(np.asarray(a.mesh.triangles), normals, albedo, sun_box, a.id)
                 self.radius[a.id] = float(np.linalg.norm(a.size)) / 2
         if n_faces >= 2 ** 24:
@@ -172,7 +177,7 @@ class Renderer:
         return np.clip(albedo.astype(np.float64) * light[:, None], 0, 255).astype(np.uint8)
 
     def render(self, cam: Camera, T_global_from_cam: np.ndarray, actor_poses: dict[int, np.ndarray],
-               with_depth: bool = True, lazy_ids: bool = False):
+               with_depth: bool = True, lazy_ids: bool = False, night=None):
         """Render one camera.
 
         Parameters
@@ -182,6 +187,9 @@ class Renderer:
         actor_poses : actor id -> (4, 4) T_global_from_box at this camera's time.
         with_depth : return the depth image too (only fog needs it; shadows read it anyway).
         lazy_ids : return the ids as an :class:`IdImage` (looked up where read) instead of an array.
+        night : the night's :class:`simgen.weather.night.Lights` at this camera's time, or None by
+            day. At night the sun is below the horizon (no sun, no shadow pass) and the image is
+            the clean night exposure of the street and vehicle lights (:meth:`_night_rgb`).
 
         Returns
         -------
@@ -208,13 +216,15 @@ class Renderer:
             self.scene.set_pose(node, actor_poses[aid])
             self._drawn.append(node)
         self._drawn += [self.static_nodes[i] for i in tiles]
-        shadows = self.cfg.shadows
-        self._gl._renderer._read_main_framebuffer = self._readers[with_depth or shadows]
+        shadows = self.cfg.shadows and night is None
+        self._gl._renderer._read_main_framebuffer = self._readers[with_depth or shadows or night is not None]
         coded, depth = self._gl.render(self.scene, flags=pr.RenderFlags.FLAT | pr.RenderFlags.RGBA)
         # RGBA bytes read as one little-endian uint32 per pixel: R | G << 8 | B << 16 | A << 24.
         face = np.ascontiguousarray(coded).view(np.uint32)[..., 0] & 0xFFFFFF
-        depth = depth.astype(np.float32, copy=False) if with_depth or shadows else None
-        if shadows:
+        depth = depth.astype(np.float32, copy=False) if with_depth or shadows or night is not None else None
+        if night is not None:
+            rgb = self._night_rgb(cam, T_global_from_cam, actor_poses, face, depth, night)
+        elif shadows:
             rgb = self._shadowed_rgb(cam, T_global_from_cam, actor_poses, face, depth)
         else:
             # One 4-byte look-up per pixel (np.take on a flat table), then drop the pad byte.
@@ -222,6 +232,25 @@ class Renderer:
             rgb = cv2.cvtColor(rgbx, cv2.COLOR_RGBA2RGB)
         ids = IdImage(face, self.face_owner)
         return rgb, depth if with_depth else None, ids if lazy_ids else np.asarray(ids)
+
+    def _night_rgb(self, cam: Camera, T_global_from_cam: np.ndarray, actor_poses: dict[int, np.ndarray],
+                   face: np.ndarray, depth: np.ndarray, lights) -> np.ndarray:
+        """(H, W, 3) uint8 rgb of the id pass's ``face`` (H, W) and ``depth`` (H, W) at night: each
+        pixel's luminance from the ambient and the ``lights`` whose reach meets this view (the
+        nearest of them, simgen/weather/night.py), through the camera's clean night exposure
+        (simgen/weather/night_sensor.py; the noise is added after the other weather)."""
+        from .weather import night, night_sensor, night_shading
+        if self._night_tables is None:
+            albedo, normals = (np.concatenate(x) for x in zip(*self._night_faces))
+            self._night_tables = night.FaceTables(night_sensor.DECODE_8BIT[albedo].astype(np.float32),
+                                                  normals.astype(np.float32),
+                                                  night.emission(albedo, self.face_owner, lights.lit_ids))
+        tables = self._night_tables
+        for aid, (first, normals) in self.actor_faces.items():
+            tables.normal[first:first + len(normals)] = normals @ actor_poses[aid][:3, :3].T
+        seen = self._in_view(cam, T_global_from_cam, lights.pos, lights.reach)
+        used = lights.nearest(seen, T_global_from_cam[:3, 3])
+        return night_sensor.clean_image(night_shading.shade(face, depth, cam.K, T_global_from_cam, tables, used))
 
     def _shadowed_rgb(self, cam: Camera, T_global_from_cam: np.ndarray, actor_poses: dict[int, np.ndarray],
                       face: np.ndarray, depth: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ from .weather import lidar_sweep, rain_lidar, snow_lidar
 
 if TYPE_CHECKING:                  # pyrender is imported by the worker that renders, when it renders
     from .camera import Renderer
+    from .weather.night import NightScene
 
 ANNOTATION_RANGE = 80.0
 BASE_TIMESTAMP_US = 1_600_000_000_000_000
@@ -94,6 +95,9 @@ def degrade_image(rgb: np.ndarray, depth: np.ndarray, cam: rig.Camera, cfg: Scen
     if d.lens_occlusion:
         rgb = degrade.lens_dirt(rgb, d.lens_occlusion, scene_rng(s.seed, idx, 100 + cam_index))
     # The night's sensor noise, last: it is the camera's own.
+    if cfg.weather.night:
+        from .weather import night_sensor
+        rgb = night_sensor.add_noise(rgb, night_sensor.binning(cam.resolution), weather.night_camera)
     return rgb
 
 
@@ -180,6 +184,7 @@ class Sensors:
     rng_degrade: np.random.Generator
     weather: WeatherStreams
     face_class: np.ndarray | None  # (F,) uint8 lidarseg class per rendered face; None without dense labels
+    night: NightScene | None = None  # the street and vehicle lights; None by day
 
 
 @dataclass(frozen=True)
@@ -221,7 +226,8 @@ def _scene_records(s: MakeSettings, idx: int, threads: int) -> writer.SceneRecor
     dropped_rings, rng_degrade = degradation_stream(s, idx)
     # The faces' classes serve the dense labels and tell the rain which pixels are paved.
     face_class = labels.face_classes(world, renderer.face_owner) if s.dense_labels or s.cfg.weather.rain > 0 else None
-    sensors = Sensors(renderer, scanner, rng_sensor, dropped_rings, rng_degrade, weather_streams(s, idx), face_class)
+    sensors = Sensors(renderer, scanner, rng_sensor, dropped_rings, rng_degrade, weather_streams(s, idx), face_class,
+                      _night_scene(s, world))
 
     records = writer.SceneRecords(idx)
     scene = _add_scene_rows(s, idx, world, records)
@@ -231,6 +237,15 @@ def _scene_records(s: MakeSettings, idx: int, threads: int) -> writer.SceneRecor
             _add_key_frame(scene, sensors, records, key_frame)
     _link_rows(scene, records)
     return records
+
+
+def _night_scene(s: MakeSettings, world: World) -> NightScene | None:
+    """The night's light sources, a pure function of the world and its layout (no stream drawn:
+    the night's world, poses and labels are the day's); None by day."""
+    if not s.cfg.weather.night:
+        return None
+    from .weather.night import night_scene
+    return night_scene(world, Grid(s.cfg.layout))
 
 
 def _add_scene_rows(s: MakeSettings, idx: int, world: World, records: writer.SceneRecords) -> SceneContext:
@@ -352,7 +367,9 @@ def _add_cameras(scene: SceneContext, sensors: Sensors, records: writer.SceneRec
         poses = geometry.poses_2d(b[:, 0], b[:, 1], b[:, 6], b[:, 2])     # (n, 4, 4) T_global_from_box
         pose_of = {a.id: poses[i] for i, a in enumerate(world.actors) if a.annotate}
         with_depth = cfg.degrade.alpha > 0 or cfg.weather.particles or scene.s.dense_labels
-        rgb, depth, ids = sensors.renderer.render(cam, T_global_from_cam, pose_of, with_depth=with_depth, lazy_ids=True)
+        lights = sensors.night.at(poses) if sensors.night is not None else None
+        rgb, depth, ids = sensors.renderer.render(cam, T_global_from_cam, pose_of, with_depth=with_depth, lazy_ids=True,
+                                                  night=lights)
         if cfg.camera.renderer == "mitsuba":
             # Path-traced rgb; the labels keep the rasterised id pass, so they do not depend on
             # the renderer (the two agree geometrically: tests/simgen/test_mitsuba.py).
