@@ -7,11 +7,18 @@ Two independent families, as in BEVDet / BEVFusion:
   Everything expressed in the lidar frame moves with it: points, GT boxes (centre, size, yaw,
   velocity) and the camera extrinsics, ``T_lidar'_from_cam = A @ T_lidar_from_cam``. The images
   and ``img_aug`` are untouched, so each camera pixel still sees the same (moved) 3-D point and
-  lift-splat stays aligned with the lidar BEV.
+  lift-splat stays aligned with the lidar BEV. This is BEVDet's BEV data augmentation (BDA,
+  Huang et al. 2021): :func:`clfbev.camera_encoder.lift_geometry` places every frustum point at
+  ``T_lidar'_from_cam p_cam = A (T_lidar_from_cam p_cam)``, the 4x4 ``A`` applied to the lifted
+  geometry before the splat, with the boxes and the points moved by the same ``A``. It needs no
+  pixel, so it stays exact with cached image features (:mod:`clfbev.feature_cache`).
 - Image augmentation (:func:`image_transform`): resize, crop and horizontal flip of every camera
   image, composed into ``img_aug`` (original -> network pixels); ``intrinsics`` stays the ORIGINAL
   K, as :mod:`clfbev.camera_encoder` composes ``img_aug @ intrinsics`` itself. 3-D data are
-  untouched.
+  untouched. Off (``AugmentConfig.image``) with cached image features, which it would change.
+  A horizontal flip of the feature map (with ``img_aug`` flipped to match) would be exact there
+  too, but it augments nothing: the depth net and the semantic head are 1x1 convolutions, so the
+  flipped map lifts the very same frustum points with the very same features.
 
 Pixel coordinates use the pixel-edge convention of :mod:`clfbev.data`: pixel c covers [c, c + 1),
 so a resize by r is u' = r u exactly and a horizontal flip of a W-wide image is u' = W - u.
@@ -194,6 +201,8 @@ class AugmentConfig:
     img_crop_random : crop offset uniform over the valid range (else centred). When the
         resized image is smaller than the output, the crop is centred and the border padded.
     img_flip_prob : probability of the horizontal image flip.
+    image : apply the image augmentation at all (its values are drawn either way); False with
+        cached image features (:mod:`clfbev.feature_cache`), leaving the BEV augmentation alone.
     """
 
     rot_range: float = math.pi / 8
@@ -202,6 +211,7 @@ class AugmentConfig:
     img_resize_range: tuple[float, float] = (0.9, 1.1)
     img_crop_random: bool = True
     img_flip_prob: float = 0.5
+    image: bool = True
 
     def __post_init__(self):
         if self.rot_range < 0 or not (0 < self.scale_range[0] <= self.scale_range[1]):
@@ -223,7 +233,8 @@ def _crop_offset(rng: np.random.Generator, excess: int, randomise: bool) -> int:
 
 
 def random_augment(sample: Sample, rng: np.random.Generator, cfg: AugmentConfig = AugmentConfig()) -> Sample:
-    """Draw a global and an image augmentation from ``cfg`` with ``rng`` and apply both.
+    """Draw a global and an image augmentation from ``cfg`` with ``rng`` and apply both (the
+    image one only with ``cfg.image``).
 
     Deterministic given the rng state. The draws are always made in the same order (rot, scale,
     flip_y, resize, crop top, crop left, image flip, point order), whatever is enabled, so one
@@ -241,5 +252,6 @@ def random_augment(sample: Sample, rng: np.random.Generator, cfg: AugmentConfig 
     flip_img = bool(rng.random() < cfg.img_flip_prob)
 
     out = global_transform(sample, rot, scale, flip_y)
-    out = image_transform(out, resize, (top, left), (H, W), flip_img)
+    if cfg.image:
+        out = image_transform(out, resize, (top, left), (H, W), flip_img)
     return shuffle_points(out, rng)

@@ -140,8 +140,8 @@ def splat(
 
     Returns
     -------
-    (B, C, nz, ny, nx) voxel features; voxel (iz, iy, ix) covers
-    [min + i * d, min + (i + 1) * d) on each axis.
+    (B, C, nz, ny, nx) voxel features (a view of (B, nz, ny, nx, C) memory); voxel (iz, iy, ix)
+    covers [min + i * d, min + (i + 1) * d) on each axis.
     """
     B, N, D, h, w = depth_probs.shape
     C = context.shape[2]
@@ -151,24 +151,29 @@ def splat(
             f"{tuple(geometry.shape)} disagree; need (B,N,D,h,w), (B,N,C,h,w), (B,N,D,h,w,3)"
         )
     nz, ny, nx = grid_shape_of(pc_range, bev_voxel)
-    lo = geometry.new_tensor(pc_range[:3])
-    size = geometry.new_tensor(bev_voxel)
-    idx = torch.floor((geometry - lo) / size).long()                       # (B, N, D, h, w, 3) = ix, iy, iz
-    ix, iy, iz = idx.unbind(-1)
-    keep = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny) & (iz >= 0) & (iz < nz)
-    dev = geometry.device
-    b = torch.arange(B, device=dev).view(B, 1, 1, 1, 1)
     n_cells = B * nz * ny * nx
-    voxel = (((b * nz + iz) * ny + iy) * nx + ix)[keep]                     # (P,) voxel of each kept point
-    # The context row of each point: its feature cell (b, n, i, j), whatever its depth bin.
-    cell = torch.arange(B * N * h * w, device=dev).view(B, N, 1, h, w).expand(B, N, D, h, w)[keep]
-    # Bags must be contiguous: order the points by voxel (stable, so the sums are reproducible).
-    voxel, order = torch.sort(voxel, stable=True)
-    counts = torch.bincount(voxel, minlength=n_cells)
+    with torch.no_grad():       # where each point goes: integers of the geometry alone
+        lo = geometry.new_tensor(pc_range[:3])
+        size = geometry.new_tensor(bev_voxel)
+        idx = torch.floor((geometry - lo) / size).long()                   # (B, N, D, h, w, 3) = ix, iy, iz
+        ix, iy, iz = idx.unbind(-1)
+        keep = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny) & (iz >= 0) & (iz < nz)
+        b = torch.arange(B, device=geometry.device).view(B, 1, 1, 1, 1)
+        voxel = (((b * nz + iz) * ny + iy) * nx + ix).flatten()            # (B N D h w,) voxel of every point
+        # The kept points by their flat index into (B, N, D, h, w), found once (a boolean index
+        # per array would search the mask each time), then in bag order: bags must be
+        # contiguous, so by voxel (a stable sort, so the sums are reproducible).
+        point = keep.flatten().nonzero().squeeze(1)                        # (P,)
+        voxel, order = torch.sort(voxel[point], stable=True)
+        point = point[order]
+        # The context row of each point: its feature cell (b, n, i, j), whatever its depth bin.
+        cell = point // (D * h * w) * (h * w) + point % (h * w)
+        counts = torch.bincount(voxel, minlength=n_cells)
     rows = context.permute(0, 1, 3, 4, 2).reshape(B * N * h * w, C)
-    out = F.embedding_bag(cell[order], rows, torch.cumsum(counts, 0) - counts, mode="sum",
-                          per_sample_weights=depth_probs[keep][order])      # (n_cells, C)
-    return out.view(B, nz, ny, nx, C).permute(0, 4, 1, 2, 3).contiguous()
+    out = F.embedding_bag(cell, rows, torch.cumsum(counts, 0) - counts, mode="sum",
+                          per_sample_weights=depth_probs.flatten()[point])  # (n_cells, C)
+    # (B, C, nz, ny, nx) as a view of the rows: channels-last memory, which the BEV backbone reads.
+    return out.view(B, nz, ny, nx, C).permute(0, 4, 1, 2, 3)
 
 
 def compress_z(voxels: Tensor) -> Tensor:
@@ -305,10 +310,15 @@ class CameraEncoder(nn.Module):
         Exposed separately so a caller can supervise the depth distribution (BEVDepth-style) and
         the classes (:mod:`clfbev.supervision.perspective`).
         """
-        B, N, _, H, W = images.shape
-        fpn = self.fpn_features(images)
+        return self.heads(self.fpn_features(images).unflatten(0, images.shape[:2]))
+
+    def heads(self, fpn: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """FPN features (B, N, fpn_ch, h, w) -> depth_probs, context and class logits as
+        :meth:`image_features` gives them: what reads the image features after the (frozen)
+        ResNet and FPN, so a cache of those features (:mod:`clfbev.feature_cache`) can feed it."""
+        B, N, _, h, w = fpn.shape
+        fpn = fpn.flatten(0, 1)
         x = self.depth_net(fpn).contiguous()
-        h, w = H // self.feature_stride, W // self.feature_stride
         D = self.num_depth_bins
         depth = x[:, :D].softmax(dim=1).view(B, N, D, h, w)
         context = x[:, D:].reshape(B, N, self.context_ch, h, w)
@@ -334,6 +344,7 @@ class CameraEncoder(nn.Module):
         T_lidar_from_cam: Tensor,
         img_aug: Tensor | None = None,
         oracle_bins: Tensor | None = None,
+        fpn: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         """Camera BEV, the depth distribution it was lifted with (for the depth loss) and the
         class logits of the image features (for the perspective loss).
@@ -347,6 +358,9 @@ class CameraEncoder(nn.Module):
         oracle_bins : (B, N, h, w) int64 depth bin to lift each cell with in place of its
             predicted distribution (one-hot), -1 to keep the prediction; None: the prediction
             everywhere. A diagnostic (:func:`oracle_depth`), not a model.
+        fpn : (B, N, fpn_ch, h, w) the frozen ResNet's and FPN's features of ``images``, cached
+            (:mod:`clfbev.feature_cache`), read in place of running them; ``images`` is then
+            unused. Only with the image features frozen: trained ones would leave a cache stale.
 
         Returns
         -------
@@ -354,7 +368,12 @@ class CameraEncoder(nn.Module):
         depth : (B, N, D, h, w) the PREDICTED depth distribution of every feature cell.
         semantics : (B, N, semantic_classes, h, w) class logits, or None without a semantic head.
         """
-        depth, context, semantics = self.image_features(images)
+        if fpn is None:
+            depth, context, semantics = self.image_features(images)
+        elif not self.image_features_frozen:
+            raise ValueError("cached FPN features need the image features frozen (freeze_image_features)")
+        else:
+            depth, context, semantics = self.heads(fpn)
         if self.semantic_lift:
             context = torch.cat([context, semantics.sigmoid()], dim=2)           # (B, N, C + n_cls, h, w)
         geom = lift_geometry(CameraGeometry(intrinsics, T_lidar_from_cam, img_aug, self.image_size,

@@ -64,6 +64,11 @@ class Sample:
     T_global_from_lidar : (4, 4) float64, to send predictions back to nuScenes global form.
     sample_token : the nuScenes sample token.
     pasted : (n,) bool, True for points GT-paste added (no pixel shows them), or None.
+    image_features : (N, fpn_ch, h, w) float32 the frozen image encoder's FPN features of the
+        network images, read from a feature cache (:mod:`clfbev.feature_cache`; ``images`` is then
+        (N, 3, 0, 0): no pixel is decoded), or None.
+    camera_dropped : the cameras are absent for this training sample (modality dropout): the
+        model's camera BEV of it is zeros (:class:`clfbev.model.CLFusionBEV`).
     """
 
     images: np.ndarray
@@ -76,6 +81,8 @@ class Sample:
     T_global_from_lidar: np.ndarray
     sample_token: str
     pasted: np.ndarray | None = None
+    image_features: np.ndarray | None = None
+    camera_dropped: bool = False
 
 
 @dataclass
@@ -87,6 +94,8 @@ class Batch:
     img_aug : (B, N, 3, 3).  T_global_from_lidar : (B, 4, 4) float64.
     points : list of B (n_i, 5).  gt_boxes : list of B (M_i, 9).  gt_labels : list of B (M_i,).
     sample_tokens : list of B str.  pasted : list of B (n_i,) bool or None (see :class:`Sample`).
+    image_features : (B, N, fpn_ch, h, w) float32 or None.  camera_dropped : (B,) bool or None
+    (none dropped).
     """
 
     images: Tensor
@@ -99,6 +108,8 @@ class Batch:
     T_global_from_lidar: Tensor
     sample_tokens: list[str] = field(default_factory=list)
     pasted: list[Tensor | None] = field(default_factory=list)
+    image_features: Tensor | None = None
+    camera_dropped: Tensor | None = None
 
     def to(self, device: torch.device | str) -> "Batch":
         """A copy with every tensor on ``device`` (tokens are shared)."""
@@ -113,6 +124,8 @@ class Batch:
             T_global_from_lidar=self.T_global_from_lidar.to(device),
             sample_tokens=list(self.sample_tokens),
             pasted=[None if m is None else m.to(device) for m in self.pasted],
+            image_features=None if self.image_features is None else self.image_features.to(device),
+            camera_dropped=None if self.camera_dropped is None else self.camera_dropped.to(device),
         )
 
 
@@ -134,6 +147,10 @@ def collate(samples: list[Sample]) -> Batch:
         T_global_from_lidar=_tensor(np.stack([s.T_global_from_lidar for s in samples])),
         sample_tokens=[s.sample_token for s in samples],
         pasted=[None if s.pasted is None else _tensor(s.pasted) for s in samples],
+        image_features=(None if any(s.image_features is None for s in samples)
+                        else _tensor(np.stack([s.image_features for s in samples]))),
+        camera_dropped=(torch.tensor([s.camera_dropped for s in samples])
+                        if any(s.camera_dropped for s in samples) else None),
     )
 
 
@@ -360,17 +377,21 @@ class NuScenesDetection(torch.utils.data.Dataset):
 
     def _cameras(self, sample: dict, T_lidar_from_global: np.ndarray):
         """images (N, 3, H, W) float32, K (N, 3, 3), T_lidar_from_cam (N, 4, 4), img_aug (N, 3, 3)."""
-        H, W = self.cfg.image_size
         images, Ks, Ts, As = [], [], [], []
         for cam in CAMERAS:
             sd = self.nusc.get("sample_data", sample["data"][cam])
             calib = self.nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
-            image, A = resize_and_crop(load_image(self._file(sd)), (H, W))
-            images.append(((image.astype(np.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1))
+            image, A = self._camera_input(self._file(sd))
+            images.append(image)
             Ks.append(np.asarray(self._numbers("calibrated_sensor", calib, "camera_intrinsic", (3, 3)), np.float64))
             Ts.append(T_lidar_from_global @ self._T_global_from_sensor(sd))
             As.append(A)
         return np.stack(images), np.stack(Ks), np.stack(Ts), np.stack(As)
+
+    def _camera_input(self, path: Path) -> tuple[np.ndarray, np.ndarray]:
+        """What the network reads of the camera image file ``path`` and its img_aug (3, 3):
+        :func:`network_image` (a feature-cache dataset reads the cached features instead)."""
+        return network_image(path, self.cfg.image_size)
 
     def _points(self, key_sd: dict, T_lidar_from_global: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(n, 5) float32 points of the key sweep and its previous sweeps, key-frame lidar frame
@@ -426,6 +447,14 @@ class NuScenesDetection(torch.utils.data.Dataset):
         except KeyError as e:
             raise DataError(f"{self.root / self.version}/sample_annotation.json: a neighbour of record {token} "
                             f"has no field {e}") from None
+
+
+def network_image(path: Path, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The image file ``path`` as the network sees it: (3, H, W) float32 RGB normalised with
+    ``IMAGE_MEAN`` / ``IMAGE_STD`` after :func:`clfbev.sensor_files.resize_and_crop` to ``size``,
+    and that (3, 3) float64 map from original to network pixels."""
+    image, A = resize_and_crop(load_image(path), size)
+    return ((image.astype(np.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1), A
 
 
 def _official_splits() -> set[str]:

@@ -65,7 +65,16 @@ def _flatten_map(x: Tensor, n_anchors: int) -> Tensor:
     """(B, A * k, H, W) anchor-major channels -> (B, H * W * A, k)."""
     b, c, h, w = x.shape
     k = c // n_anchors
-    return x.view(b, n_anchors, k, h, w).permute(0, 3, 4, 1, 2).reshape(b, h * w * n_anchors, k)
+    return x.reshape(b, n_anchors, k, h, w).permute(0, 3, 4, 1, 2).reshape(b, h * w * n_anchors, k)
+
+
+def pointwise(conv: nn.Conv2d, x: Tensor) -> Tensor:
+    """The 1x1 convolution ``conv`` of x (B, C, H, W) as one matrix product over the channels
+    of the channels-last rows: (B, C_out, H, W) in channels-last memory, the numbers of
+    ``conv(x)``. The maps then flatten to per-anchor rows without a copy (:func:`_flatten_map`);
+    ``conv(x)`` on one CPU thread takes PyTorch's im2col path for a 1x1 kernel, with a layout
+    copy of its input and output each way, forward and backward."""
+    return F.linear(x.permute(0, 2, 3, 1), conv.weight.flatten(1), conv.bias).permute(0, 3, 1, 2)
 
 
 @dataclass(frozen=True)
@@ -145,7 +154,7 @@ class VelocityTower(nn.Module):
         gate, ``(vx, vy, moving logit)``."""
         fine = self.reduce(x)
         coarse = F.interpolate(self.coarse(fine), size=fine.shape[-2:], mode="nearest")
-        return self.out(torch.cat([fine, coarse], dim=1))
+        return pointwise(self.out, torch.cat([fine, coarse], dim=1))
 
 
 class AnchorHead(nn.Module):
@@ -204,19 +213,22 @@ class AnchorHead(nn.Module):
         nn.init.constant_(self.conv_cls.bias, -math.log((1.0 - prior_prob) / prior_prob))
 
     def forward(self, bev: Tensor, motion: Tensor | None = None) -> HeadOutput:
-        """bev (B, in_ch, H, W), motion (B, motion_ch, H, W) or None -> HeadOutput on the same grid."""
-        box = self.conv_box(bev)
+        """bev (B, in_ch, H, W), motion (B, motion_ch, H, W) or None -> HeadOutput on the same grid
+        (channels-last maps, :func:`pointwise`)."""
+        box = pointwise(self.conv_box, bev)
         moving = None
         if self.velocity is not None:
             shared = bev.detach() if self.velocity_detach else bev
             tower_in = shared if motion is None else torch.cat([shared, motion], dim=1)
             b, _, h, w = box.shape
-            n_anchors = self.n_classes * self.n_rot
-            tower = self.velocity(tower_in).view(b, n_anchors, self.velocity.outputs, h, w)
-            box = torch.cat([box.view(b, n_anchors, 7, h, w), tower[:, :, :2]], dim=2).view(b, n_anchors * 9, h, w)
-            if self.velocity.outputs == 3:
-                moving = tower[:, :, 2]
-        return HeadOutput(self.conv_cls(bev), box, self.conv_dir(bev), moving)
+            n_anchors, k = self.n_classes * self.n_rot, self.velocity.outputs
+            # Joined per cell and anchor in (B, H, W, A, k) rows, so the channels-last maps stay views.
+            tower = self.velocity(tower_in).permute(0, 2, 3, 1).reshape(b, h, w, n_anchors, k)
+            box = torch.cat([box.permute(0, 2, 3, 1).reshape(b, h, w, n_anchors, 7), tower[..., :2]], dim=-1)
+            box = box.view(b, h, w, n_anchors * 9).permute(0, 3, 1, 2)
+            if k == 3:
+                moving = tower[..., 2].permute(0, 3, 1, 2)
+        return HeadOutput(pointwise(self.conv_cls, bev), box, pointwise(self.conv_dir, bev), moving)
 
 
 # ----------------------------------------------------------------------------------------------

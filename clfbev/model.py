@@ -24,6 +24,10 @@ and the camera branch learns depth from the lidar from the first step
 The forward returns :class:`clfbev.outputs.ModelOutputs`; the training targets are built with
 the batch in the loader and the loss is taken outside the model (:mod:`clfbev.supervision`).
 
+An absent sensor (modality dropout, in training): a sample whose cameras are dropped
+(``Batch.camera_dropped``) gets an all-zero camera BEV (:func:`camera_absent`); one whose lidar
+is dropped has no points, which the lidar encoder turns into an all-zero lidar BEV.
+
 Frames: everything is in the key-frame lidar frame; BEV maps are (B, C, ny, nx) with rows along
 y and columns along x over ``cfg.pc_range``. Predictions are boxes in that frame.
 """
@@ -182,7 +186,8 @@ class CLFusionBEV(nn.Module):
         if self.camera_encoder is not None:
             cam_bev, depth, semantics = self.camera_encoder.lift_splat(batch.images, batch.intrinsics,
                                                                        batch.T_lidar_from_cam, batch.img_aug,
-                                                                       self._oracle_bins(batch))
+                                                                       self._oracle_bins(batch), batch.image_features)
+            cam_bev = camera_absent(cam_bev, batch.camera_dropped)
         if self.variant == "lidar":
             return Encoded(lidar.bev, None, None, motion, AttentionInputs())
         if self.variant == "camera":
@@ -244,6 +249,16 @@ class CLFusionBEV(nn.Module):
             pre_nms=cfg.pre_nms, heading_speed=cfg.heading_from_motion, moving_logits=out.moving_logits,
             heading_follow=tuple(cfg.class_names.index(c) for c in cfg.heading_follow_classes),
         )
+
+
+def camera_absent(cam_bev: Tensor, dropped: Tensor | None) -> Tensor:
+    """The camera BEV (B, C, ny, nx) with the samples whose cameras are absent, ``dropped`` (B,)
+    bool (modality dropout; None: none), set to exactly 0: what the model takes a missing camera
+    to give, as a missing lidar gives no points and so an all-zero lidar BEV. No gradient
+    reaches the camera encoder through a dropped sample's BEV."""
+    if dropped is None:
+        return cam_bev
+    return torch.where(dropped.view(-1, 1, 1, 1), torch.zeros((), dtype=cam_bev.dtype, device=cam_bev.device), cam_bev)
 
 
 def count_parameters(module: nn.Module) -> int:

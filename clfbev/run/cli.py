@@ -4,6 +4,7 @@ entry point (the ``clfbev`` script, ``python -m clfbev``, and what torchrun star
     clfbev train   --data DIR --config tiny --variant full --out RUN [--epochs N | --max-steps N] [--resume]
     torchrun --nproc_per_node 2 -m clfbev train --data DIR --out RUN ...          (DDP)
     clfbev pretrain --data DIR --config tiny --out RUN [--max-steps N] [--resume]   (camera encoder, dense labels)
+    clfbev cache-features --data DIR --config tiny --image-init shipped --out CACHE [--split sim-train]
     clfbev eval    --data DIR --ckpt RUN/best.pt [--split sim-val] --out DIR
     clfbev predict --data DIR --ckpt CKPT --out results.json [--split all]
     clfbev show    --data DIR --results results.json [--sample I] --out FILE.png [--attention --ckpt CKPT [--cell X,Y]]
@@ -28,20 +29,25 @@ import numpy as np
 import torch
 
 from clfbev import io
+from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import VARIANTS
 from clfbev.config_file import load_config
 from clfbev.corruptions import parse as parse_corruption
 from clfbev.data import NuScenesDetection, collate, load_nuscenes
 from clfbev.errors import ConfigError, DataError, OutputError, run_guarded
+from clfbev.feature_cache import FeatureCache, encoder_identity, fill_cache
 from clfbev.run import robustness
 from clfbev.run.attention_plot import draw_attention
 from clfbev.run.attention_query import attention_modules
 from clfbev.run.checkpoint import load_model
+from clfbev.run.efficientnet_init import EFFICIENTNET_LITE0
+from clfbev.run.image_init import camera_fields, init_camera_encoder, resolve_image_init
+from clfbev.run.torchvision_init import TORCHVISION
 from clfbev.run.evaluate import EVAL_SCORE_THR, evaluate_model, predict_split, write_results
 from clfbev.run.pretrain import PretrainConfig, final_loss, pretrain
 from clfbev.run.sheets import check_records, load_results, sample_sheet
 from clfbev.run.train import train
-from clfbev.run.train_config import (VERSION, add_setting_options, add_train_arguments, settings_from,
+from clfbev.run.train_config import (SHIPPED, VERSION, add_setting_options, add_train_arguments, settings_from,
                                      train_config_from, whole_number)
 
 
@@ -100,6 +106,28 @@ def cmd_pretrain(args) -> None:
                        resume=args.resume, progress=not args.quiet)
     print(f"pretrained {summary['steps']} steps, {final_loss(summary)}; encoder checkpoint {summary['encoder']} "
           f"(clfbev train --image-init {summary['encoder']})")
+
+
+def cmd_cache_features(args) -> None:
+    """The frozen encoder's features of every camera image of --split into --out (see
+    clfbev.feature_cache); entries already there are kept, so a killed run is rerun as it was."""
+    check_writable(args.out)
+    cfg = load_config(args.config)
+    if args.image_init in (TORCHVISION, EFFICIENTNET_LITE0):
+        raise ConfigError(f"--image-init {args.image_init} loads a backbone alone; the cache needs the ResNet and FPN "
+                          "of an encoder checkpoint")
+    if resolve_image_init(args.image_init, cfg) is None:
+        raise ConfigError(f"--image-init {args.image_init!r}: no encoder checkpoint to cache the features of "
+                          f"(for this camera: {camera_fields(cfg)})")
+    encoder = CameraEncoder.from_config(cfg)
+    started = init_camera_encoder(encoder, args.image_init, cfg)
+    encoder.freeze_image_features()
+    ds = NuScenesDetection(args.data, args.version, args.split, cfg.data_config())
+    cache = FeatureCache.create(args.out, encoder_identity(encoder))
+    counts = fill_cache(ds, encoder, cache, progress=not args.quiet)
+    print(f"cached the features of {counts['images']} images of {len(ds)} samples ({counts['computed']} computed, "
+          f"{counts['kept']} already there) of the encoder {started} in {args.out}; "
+          f"clfbev train --image-init {args.image_init} --image-freeze --feature-cache {args.out}")
 
 
 def cmd_eval(args) -> None:
@@ -295,6 +323,25 @@ def _add_pretrain(sub) -> None:
     p.set_defaults(fn=cmd_pretrain)
 
 
+def _add_cache_features(sub) -> None:
+    p = sub.add_parser(
+        "cache-features", help="compute the frozen image encoder's features of a split once, for a camera stage",
+        description="Compute the FPN features of every camera image of --split with the encoder of --image-init "
+        "(ResNet and FPN, frozen, eval mode, one image at a time on one thread, float32) and write one file per "
+        "image into --out, named by the sha256 of the image file and checked against the encoder's identity "
+        "(encoder.json). `clfbev train --image-init SAME --image-freeze --feature-cache CACHE` then reads them "
+        "instead of the images. Rerunning keeps the entries already there: a killed run resumes.")
+    p.add_argument("--data", required=True, type=Path, help="nuScenes-format dataroot")
+    p.add_argument("--config", default="tiny", help="model config: 'tiny', 'paper' or a YAML file (the detector's)")
+    p.add_argument("--image-init", default=SHIPPED, metavar="PATH",
+                   help=f"the encoder checkpoint: PATH (of `clfbev pretrain`) or '{SHIPPED}' [default {SHIPPED}]")
+    p.add_argument("--split", default="sim-train", help="split whose images to cache ('all': every scene)")
+    p.add_argument("--version", default=VERSION, help="table folder under the dataroot")
+    p.add_argument("--out", required=True, type=Path, help="cache folder (one per encoder)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(fn=cmd_cache_features)
+
+
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="official nuScenes DetectionEval of a checkpoint on a split",
                        description="Predict a split, write results.json (nuScenes submission format) and run the "
@@ -361,7 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="clfbev", description="CL-FusionBEV: camera + lidar BEV fusion detector "
                                  "(train, evaluate with the official nuScenes metrics, predict, visualise).")
     sub = ap.add_subparsers(dest="command", required=True)
-    for add in (_add_train, _add_pretrain, _add_eval, _add_robustness, _add_predict, _add_show):
+    for add in (_add_train, _add_pretrain, _add_cache_features, _add_eval, _add_robustness, _add_predict, _add_show):
         add(sub)
     return ap
 

@@ -24,14 +24,17 @@ class EpochSamples(torch.utils.data.Dataset):
     """The training samples of one epoch: sample i is augmented with rng ``(seed, epoch, i)``
     (independent of the worker that loads it), then cropped to the model's range; with
     ``modality_dropout`` p, it then loses its camera or its lidar input with probability p
-    (rng ``(seed, epoch, i, 1)``). Objects are pasted first, with rng ``(seed, epoch, i, 2)``."""
+    (rng ``(seed, epoch, i, 1)``); with ``dropout_lidar`` / ``dropout_camera``, its lidar is
+    absent with the one probability, else its cameras with the other (:func:`drop_sensors`, rng
+    ``(seed, epoch, i, 3)``). Objects are pasted first, with rng ``(seed, epoch, i, 2)``."""
 
     def __init__(self, base: NuScenesDetection, seed: int, epoch: int, augment: AugmentConfig | None,
                  pc_range: tuple[float, ...], modality_dropout: float = 0.0, gt_db=None, gt_paste: int = 0,
-                 gt_paste_balanced: bool = False) -> None:
+                 gt_paste_balanced: bool = False, dropout_lidar: float = 0.0, dropout_camera: float = 0.0) -> None:
         self.base, self.seed, self.epoch, self.augment, self.pc_range = base, seed, epoch, augment, pc_range
         self.modality_dropout, self.gt_db, self.gt_paste = modality_dropout, gt_db, gt_paste
         self.gt_paste_balanced = gt_paste_balanced
+        self.dropout_lidar, self.dropout_camera = dropout_lidar, dropout_camera
 
     def __len__(self) -> int:
         return len(self.base)
@@ -49,7 +52,24 @@ class EpochSamples(torch.utils.data.Dataset):
             if u < self.modality_dropout:
                 sample = (replace(sample, images=np.zeros_like(sample.images)) if which < 0.5
                           else replace(sample, points=sample.points[:0]))
+        if self.dropout_lidar > 0 or self.dropout_camera > 0:
+            sample = drop_sensors(sample, np.random.default_rng((self.seed, self.epoch, i, 3)), self.dropout_lidar,
+                                  self.dropout_camera)
         return sample
+
+
+def drop_sensors(sample: Sample, rng: np.random.Generator, p_lidar: float, p_camera: float) -> Sample:
+    """Modality dropout: ``sample`` without its lidar (no points, nor pasted flags) with
+    probability ``p_lidar``, else without its cameras (``camera_dropped``: the model's camera BEV
+    of it is all zeros) with probability ``p_camera``; a sample always keeps one sensor. Two
+    draws from ``rng`` whatever the probabilities, so they never shift another stream."""
+    u_lidar, u_camera = rng.random(2)
+    if u_lidar < p_lidar:
+        pasted = None if sample.pasted is None else sample.pasted[:0]
+        return replace(sample, points=sample.points[:0], pasted=pasted)
+    if u_camera < p_camera:
+        return replace(sample, camera_dropped=True)
+    return sample
 
 
 def epoch_batches(n: int, batch_size: int, seed: int, epoch: int, rank: int, world: int) -> list[list[int]]:

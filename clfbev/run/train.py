@@ -30,7 +30,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -41,6 +41,7 @@ from clfbev.augment import AugmentConfig
 from clfbev.config import ModelConfig
 from clfbev.data import Batch, NuScenesDetection
 from clfbev.errors import CheckpointError, ConfigError, DataError, TrainError
+from clfbev.feature_cache import CachedFeatureDataset, FeatureCache, encoder_identity
 from clfbev.gt_paste import GTDatabase
 from clfbev.model import CLFusionBEV
 from clfbev.run.checkpoint import REQUIRED, RESUME_FIELDS, Checkpoints, check_matches, load_checkpoint
@@ -135,9 +136,12 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
     from tqdm import tqdm
     run = Path(out)
     rank, world, device = _setup_distributed()
+    check_sensor_settings(tc, variant)
     ckpt = resume_checkpoint(run / "last.pt", cfg, variant, tc, resume)
-    training = load_training_data(data, cfg, tc, rank, world)
+    training = load_training_data(data, cfg, variant, tc, rank, world)
     state = start_state(cfg, variant, tc, device, ckpt, run / "last.pt")
+    if tc.feature_cache:
+        training.train_set.cache.check_encoder(encoder_identity(state.model.camera_encoder))
     loss_module: nn.Module = LossModule(state.model)
     if world > 1:
         loss_module = nn.parallel.DistributedDataParallel(loss_module)
@@ -185,15 +189,47 @@ def resume_checkpoint(last: Path, cfg: ModelConfig, variant: str, tc: TrainConfi
     return ckpt
 
 
-def load_training_data(data: str | Path, cfg: ModelConfig, tc: TrainConfig, rank: int, world: int) -> TrainingData:
-    """The splits, the augmentation, the GT-paste database and the run's length in steps."""
-    train_set = NuScenesDetection(data, tc.version, tc.train_split, cfg.data_config())
+def check_sensor_settings(tc: TrainConfig, variant: str) -> None:
+    """Refuse settings that ask a variant for a sensor it lacks, or a feature cache that the
+    training would leave stale (an encoder that trains) or that cannot hold the input asked for
+    (the older ``modality_dropout`` zeroes images)."""
+    fused = variant not in ("lidar", "camera")
+    if (tc.modality_dropout_lidar or tc.modality_dropout_camera) and not fused:
+        raise ConfigError(f"--modality-dropout-lidar and --modality-dropout-camera need a variant with both sensors, "
+                          f"not '{variant}'")
+    if not tc.feature_cache:
+        return
+    if variant == "lidar":
+        raise ConfigError(f"--feature-cache {tc.feature_cache}: the variant 'lidar' has no camera")
+    if not tc.image_freeze:
+        raise ConfigError(f"--feature-cache {tc.feature_cache} needs --image-freeze (the cached features are those "
+                          "of the frozen encoder)")
+    if tc.modality_dropout:
+        raise ConfigError("--modality-dropout zeroes the images, which --feature-cache does not read; use "
+                          "--modality-dropout-lidar and --modality-dropout-camera")
+
+
+def load_training_data(data: str | Path, cfg: ModelConfig, variant: str, tc: TrainConfig, rank: int,
+                       world: int) -> TrainingData:
+    """The splits, the augmentation, the GT-paste database and the run's length in steps; with
+    ``tc.feature_cache`` the training split reads the cached image features, and only the BEV is
+    augmented. The ``camera`` variant's training samples hold the key sweep alone: its lidar
+    points are only its depth targets, which read the key sweep (:mod:`clfbev.supervision.depth`),
+    the other sweeps would only be loaded, moved and shuffled."""
+    train_cfg = cfg.data_config()
+    if variant == "camera":
+        train_cfg = replace(train_cfg, n_sweeps=1)
+    if tc.feature_cache:
+        train_set = CachedFeatureDataset(data, tc.version, tc.train_split, train_cfg,
+                                         FeatureCache.open(tc.feature_cache))
+    else:
+        train_set = NuScenesDetection(data, tc.version, tc.train_split, train_cfg)
     val_set = NuScenesDetection(data, tc.version, tc.val_split, cfg.data_config()) if (tc.val_split and rank == 0) else None
     if len(train_set) == 0:
         raise DataError(f"split '{tc.train_split}' of {data} has no samples")
     steps_per_epoch = len(epoch_batches(len(train_set), tc.batch_size, tc.seed, 0, rank, world))
     total = tc.max_steps if tc.max_steps > 0 else tc.epochs * steps_per_epoch
-    return TrainingData(train_set, val_set, AugmentConfig() if tc.augment else None,
+    return TrainingData(train_set, val_set, AugmentConfig(image=not tc.feature_cache) if tc.augment else None,
                         GTDatabase.from_dataset(train_set) if tc.gt_paste else None,
                         steps_per_epoch, total, int(round(total * (1.0 - tc.gt_paste_fade))))
 
@@ -253,7 +289,8 @@ def epoch_loader(loop: Loop, state: TrainState) -> torch.utils.data.DataLoader:
     # that a run resumed mid-epoch pastes exactly as the uninterrupted one.
     paste = tc.gt_paste if state.epoch * data.steps_per_epoch < data.paste_until else 0
     samples = EpochSamples(data.train_set, tc.seed, state.epoch, data.augment, state.model.cfg.pc_range,
-                           tc.modality_dropout, data.gt_db, paste, tc.gt_paste_balanced)
+                           tc.modality_dropout, data.gt_db, paste, tc.gt_paste_balanced, tc.modality_dropout_lidar,
+                           tc.modality_dropout_camera)
     collate = TrainingCollate(state.model.cfg, cameras=state.model.camera_encoder is not None)
     return torch.utils.data.DataLoader(samples, batch_sampler=batches[done_in_epoch:], collate_fn=collate,
                                        num_workers=tc.workers)

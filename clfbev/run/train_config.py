@@ -44,7 +44,13 @@ class TrainConfig:
 
     AdamW at ``lr`` with linear warmup over ``warmup_frac`` of the steps, then cosine decay to
     ``lr * min_lr_ratio``. ``modality_dropout``: a training sample loses its camera (zero images)
-    or its lidar (no points), the input a failed sensor gives at test time. ``gt_paste``:
+    or its lidar (no points), the input a failed sensor gives at test time.
+    ``modality_dropout_lidar`` / ``modality_dropout_camera``: a training sample's lidar is absent
+    (no points) with the one probability, else its cameras (an all-zero camera BEV,
+    :func:`clfbev.model.camera_absent`) with the other, so a fused model learns to stand on either
+    sensor; never both. ``feature_cache``: the camera reads the frozen encoder's features from a
+    cache of ``clfbev cache-features`` (:mod:`clfbev.feature_cache`) instead of the images; the
+    image augmentation is then off and the BEV one kept. ``gt_paste``:
     objects pasted per sample from a database cut from the training split (lidar only, see
     clfbev/gt_paste.py), none in the last ``gt_paste_fade`` share of the steps.
     ``precise_bn_batches``: after the last step, BatchNorm's running statistics are recomputed
@@ -83,6 +89,10 @@ class TrainConfig:
     modality_dropout: float = field(default=0.0, metadata=setting(
         "drop the camera or the lidar input of a sample with probability P (robust fusion)",
         lo=0, hi=1, recipe=True, metavar="P"))
+    modality_dropout_lidar: float = field(default=0.0, metadata=setting(
+        "a training sample has no lidar points with probability P (fused variants)", lo=0, hi=1, metavar="P"))
+    modality_dropout_camera: float = field(default=0.0, metadata=setting(
+        "else its camera BEV is all zeros with probability P (fused variants)", lo=0, hi=1, metavar="P"))
     gt_paste: int = field(default=0, metadata=setting(
         "paste up to N objects per sample from other training samples (lidar only; 0 = off)",
         lo=0, recipe=True, metavar="N"))
@@ -113,6 +123,10 @@ class TrainConfig:
         "start the lidar encoder, the BEV backbone and the head from a training checkpoint with a lidar "
         "detector of this config, e.g. a lidar run's RUN/last.pt (not on --resume; BEVFusion's second stage: "
         "the fusion keeps its seeded start, the camera encoder --image-init's)", metavar="PATH"))
+    feature_cache: str = field(default="", metadata=setting(
+        "read the camera's image features from this cache of `clfbev cache-features` (made with the same "
+        "--image-init; needs --image-freeze) instead of decoding the images and running the ResNet and FPN; "
+        "the image augmentation is then off, the BEV augmentation kept", metavar="CACHE"))
 
 
 # The fields that do not change the trained weights: a resume and the results table ignore them.

@@ -162,7 +162,8 @@ def test_projection_into_cam_front(train):
     cam = CAMERAS.index("CAM_FRONT")
     for index in range(len(train)):
         s = collate([train[index]])                     # as the model sees it: torch, (1, ...)
-        s = Batch(**{k: v[0] if k not in ("sample_tokens", "pasted") else v for k, v in vars(s).items()})
+        s = Batch(**{k: v[0] if k not in ("sample_tokens", "pasted") and v is not None else v
+                     for k, v in vars(s).items()})
         T_cam_from_lidar = torch.linalg.inv(s.T_lidar_from_cam[cam].double())
         # The pixel map of the network's image: img_aug @ K (K is the original calibration).
         P = (s.img_aug[cam].double() @ s.intrinsics[cam].double()) @ T_cam_from_lidar[:3]
