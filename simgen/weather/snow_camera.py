@@ -3,7 +3,7 @@ flakes near the lens.
 
 1. Extinction: Koschmieder's law with the snowfall's extinction coefficient (simgen.weather.
    particles.snow_extinction, from the flakes' own cross-sections: 4.2e-3 /m at 1 mm/h of water,
-   a visibility of 0.7 km) and the overcast airlight of the rain (simgen.weather.rain_camera).
+   a visibility of 0.7 km) and the overcast airlight (simgen.weather.veil).
 2. Flakes (simgen.weather.streaks): Gunn-Marshall flakes within the camera's near volume whose
    image is at least a pixel wide (a flake's diameter from its melted one with Brandes et al.'s
    density), each swept over the exposure at its fall speed (about 1 m/s: Locatelli and Hobbs
@@ -23,10 +23,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..camera import CAMERA_ZNEAR, depth_to_range
-from ..degrade import fog_image
 from .particles import snow_distribution, snow_extinction
-from .rain_camera import CLEAR_SKY_RGB, environment_radiance, overcast_airlight
-from .streaks import DAY_OPTICS, CameraOptics, blend, coverage, project, sample_particles
+from .streaks import DAY_OPTICS, CameraOptics, coverage, project, sample_particles
+from .veil import CLEAR_SKY_RGB, compose, environment_radiance, overcast_airlight, transmittance
 
 SNOW_ALBEDO = 0.9
 
@@ -36,14 +35,14 @@ def snow_veil(rgb: np.ndarray, range_m: np.ndarray, rate_mm_h: float, airlight: 
     along each pixel's ray (0: the sky). ``round(J t + A (1 - t))``, ``t = exp(-alpha d)``."""
     if rate_mm_h <= 0:
         return rgb
-    return fog_image(rgb, range_m, snow_extinction(rate_mm_h), airlight)
+    return compose(rgb, transmittance(range_m, snow_extinction(rate_mm_h)), airlight)
 
 
 def snow_image(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, rate_mm_h: float, rng: np.random.Generator,
                down_cam: np.ndarray, v_cam: np.ndarray, sky_rgb=CLEAR_SKY_RGB,
                optics: CameraOptics = DAY_OPTICS) -> np.ndarray:
-    """The camera image in snowfall of ``rate_mm_h`` of water (module docstring); rate 0 returns
-    ``rgb`` itself.
+    """The camera image in snowfall of ``rate_mm_h`` of water (module docstring), composed in one
+    pass (simgen.weather.veil.compose); rate 0 returns ``rgb`` itself.
 
     rgb : (H, W, 3) uint8.  depth : (H, W) float32 camera z (m), 0 for the sky.  K : (3, 3).
     rng : the camera's snow stream (the flakes).  down_cam : (3,) unit gravity, camera frame.
@@ -53,7 +52,7 @@ def snow_image(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, rate_mm_h: flo
         return rgb
     H, W = depth.shape
     airlight = overcast_airlight(sky_rgb)
-    rgb = snow_veil(rgb, depth_to_range(depth, K), rate_mm_h, airlight)
+    t = transmittance(depth_to_range(depth, K), snow_extinction(rate_mm_h))
     flakes = sample_particles(snow_distribution(rate_mm_h), K, (W, H), optics, down_cam, v_cam, rng, CAMERA_ZNEAR)
     cover = coverage(project(flakes, K, (W, H), optics, CAMERA_ZNEAR), (W, H), depth)
-    return blend(rgb, cover, SNOW_ALBEDO * environment_radiance(rgb, K, airlight))
+    return compose(rgb, t, airlight, cover, SNOW_ALBEDO * environment_radiance(rgb, t, K, airlight))

@@ -272,25 +272,3 @@ def _splat(out, depth, x, y, w, z):
             ii = i0 + di
             if 0 <= ii < W and not (0 < depth[jj, ii] < z):
                 out[jj, ii] += w * wy * (fx if di else 1.0 - fx)
-
-
-def blend(rgb: np.ndarray, cover: np.ndarray, radiance: np.ndarray) -> np.ndarray:
-    """``round((1 - c) I + c E)`` per pixel, c = min(cover, 1): rgb (H, W, 3) uint8, cover (H, W),
-    the particles' radiance E (3,) in pixel units. Pixels with no cover keep their bytes."""
-    out = rgb.copy()
-    _blend(out, np.ascontiguousarray(cover, np.float32), np.asarray(radiance, np.float64))
-    return out
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _blend(out, cover, radiance):
-    """In place on ``out`` (H, W, 3) uint8: the covered pixels blended toward ``radiance``."""
-    H, W = cover.shape
-    for v in range(H):
-        for u in range(W):
-            c = cover[v, u]
-            if c <= 0:
-                continue
-            c = min(c, 1.0)
-            for k in range(3):
-                out[v, u, k] = min(max(np.round((1 - c) * out[v, u, k] + c * radiance[k]), 0), 255)

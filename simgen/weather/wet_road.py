@@ -34,6 +34,8 @@ import cv2
 import numba
 import numpy as np
 
+from .veil import WetGround, compose
+
 WATER_INDEX = 1.333
 MARCH_START = 0.05     # m along the reflected ray: its first step
 MARCH_GROWTH = 1.15    # each step 15% longer than the last
@@ -93,24 +95,28 @@ def _mirror_reflectance(shape: tuple[int, int], K_bytes: bytes, up_bytes: bytes)
     return out
 
 
-def wet_road(rgb: np.ndarray, depth: np.ndarray, wet: np.ndarray, K: np.ndarray, up_cam: np.ndarray,
-             sky_radiance: np.ndarray) -> np.ndarray:
-    """The image with its wet pixels darkened and mirroring (module docstring).
+def wet_ground(rgb: np.ndarray, depth: np.ndarray, wet: np.ndarray, K: np.ndarray, up_cam: np.ndarray,
+               sky_radiance: np.ndarray) -> WetGround:
+    """What the film does to the image (module docstring), for simgen.weather.veil.compose.
 
     rgb : (H, W, 3) uint8 dry image.  depth : (H, W) camera z (m), 0 for the sky.
     wet : (H, W) bool, the horizontal surfaces under a water film (the paved ground).
     up_cam : (3,) unit normal of the ground, camera frame.  sky_radiance : (3,) what a reflected
-    ray that leaves the scene brings (pixel units). Returns (H, W, 3) uint8."""
+    ray that leaves the scene brings (pixel units)."""
     H, W = depth.shape
     up = np.asarray(up_cam, np.float64)
     K = np.asarray(K, np.float64)
-    depth = np.ascontiguousarray(depth, np.float32)
     wet = np.ascontiguousarray(wet, np.bool_)
-    mirror = mirrored(rgb, depth, wet, K, up, sky_radiance)
-    R = _mirror_reflectance((H, W), K.tobytes(), up.tobytes())
-    out = rgb.copy()
-    _compose(out, depth, wet, R, _dark_lut(), mirror)
-    return out
+    mirror = mirrored(rgb, np.ascontiguousarray(depth, np.float32), wet, K, up, sky_radiance)
+    return WetGround(wet, _mirror_reflectance((H, W), K.tobytes(), up.tobytes()), _dark_lut(), mirror)
+
+
+def wet_road(rgb: np.ndarray, depth: np.ndarray, wet: np.ndarray, K: np.ndarray, up_cam: np.ndarray,
+             sky_radiance: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8: the image with its wet pixels darkened and mirroring, nothing else
+    (:func:`wet_ground` composed without a veil or particles)."""
+    ground = wet_ground(rgb, depth, wet, K, up_cam, sky_radiance)
+    return compose(rgb, np.ones(depth.shape, np.float32), np.zeros(3), ground=ground)
 
 
 def mirrored(rgb: np.ndarray, depth: np.ndarray, wet: np.ndarray, K: np.ndarray, up: np.ndarray,
@@ -143,22 +149,6 @@ def mirrored(rgb: np.ndarray, depth: np.ndarray, wet: np.ndarray, K: np.ndarray,
     # Cell (j, i) holds pixel (j stride + stride // 2, ...): a resize by exactly the stride (cv2
     # maps x to (x + 0.5) / stride - 0.5) puts it within half a pixel of there.
     return cv2.resize(coarse, (Wc * stride, Hc * stride), interpolation=cv2.INTER_LINEAR)[:H, :W]
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _compose(out, depth, wet, R, dark, mirror):
-    """Each wet pixel of ``out`` (H, W, 3) uint8 (the dry image, changed in place) becomes
-    ``dark[I] (1 - R) + M R``: ``dark`` (256,) the diffuse part per dry level, R (H, W) the
-    mirror's reflectance, M ``mirror`` (H, W, 3) the mirrored radiance."""
-    H, W = depth.shape
-    for v in range(H):
-        for u in range(W):
-            if not wet[v, u] or depth[v, u] <= 0:
-                continue
-            r = R[v, u]
-            for k in range(3):
-                value = dark[out[v, u, k]] * (1 - r) + mirror[v, u, k] * r
-                out[v, u, k] = min(max(np.round(value), 0), 255)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

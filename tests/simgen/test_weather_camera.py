@@ -10,7 +10,8 @@ import pytest
 
 from simgen import rig
 from simgen.camera import depth_to_range
-from simgen.weather import particles, rain_camera, snow_camera, streaks, wet_road
+from simgen import degrade
+from simgen.weather import particles, rain_camera, snow_camera, streaks, veil, wet_road
 
 SIZE = (320, 180)
 CAM = rig.cameras(SIZE)[0]
@@ -31,20 +32,20 @@ def _uniform(value, depth_m):
 
 
 def test_overcast_airlight_is_the_grey_of_the_skys_luminance():
-    A = rain_camera.overcast_airlight(DAY_SKY)
+    A = veil.overcast_airlight(DAY_SKY)
     assert np.all(A == A[0]) and A[0] == pytest.approx(0.2126 * 158 + 0.7152 * 188 + 0.0722 * 224)
 
 
-@pytest.mark.parametrize("veil, extinction, rate", [(rain_camera.rain_veil, particles.rain_extinction, 25.0),
-                                                     (snow_camera.snow_veil, particles.snow_extinction, 1.0)])
-def test_veil_is_koschmieder_with_the_precipitations_extinction(veil, extinction, rate):
+@pytest.mark.parametrize("veil_of, extinction, rate", [(rain_camera.rain_veil, particles.rain_extinction, 25.0),
+                                                        (snow_camera.snow_veil, particles.snow_extinction, 1.0)])
+def test_veil_is_koschmieder_with_the_precipitations_extinction(veil_of, extinction, rate):
     """A uniform image at a uniform depth: each pixel is round(J t + A (1 - t)), t = exp(-alpha d)
     on its own range, with alpha the precipitation's; 1.1 alpha misses; the sky is the airlight."""
     J, depth = _uniform(30, 300.0)
     depth[:20] = 0.0                                            # a band of sky
-    A = rain_camera.overcast_airlight(DAY_SKY)
+    A = veil.overcast_airlight(DAY_SKY)
     alpha = extinction(rate)
-    out = veil(J, depth_to_range(depth, K), rate, A).astype(float)
+    out = veil_of(J, depth_to_range(depth, K), rate, A).astype(float)
     d = depth * np.sqrt(1 + ((np.arange(SIZE[0]) + 0.5 - K[0, 2]) / K[0, 0])[None, :] ** 2
                         + ((np.arange(SIZE[1]) + 0.5 - K[1, 2]) / K[1, 1])[:, None] ** 2)
     ground = depth > 0
@@ -53,19 +54,33 @@ def test_veil_is_koschmieder_with_the_precipitations_extinction(veil, extinction
     assert (out[~ground] == np.round(A)).all()
 
 
+def test_the_veil_is_the_fogs_law():
+    """The fused veil and simgen.degrade.fog_image (OpenCV's blend) agree to a level (each rounds
+    the same law once)."""
+    rng = np.random.default_rng(0)
+    J = rng.integers(0, 256, (SIZE[1], SIZE[0], 3), dtype=np.uint8)
+    depth = rng.uniform(0, 400, SIZE[::-1]).astype(np.float32)
+    depth[:30] = 0
+    A = veil.overcast_airlight(DAY_SKY)
+    d = depth_to_range(depth, K)
+    ours = rain_camera.rain_veil(J, d, 25.0, A).astype(int)
+    fog = degrade.fog_image(J, d, particles.rain_extinction(25.0), A).astype(int)
+    assert np.abs(ours - fog).max() <= 1
+
+
 def test_rain_image_is_the_veil_wherever_no_drop_passed():
     """Without a wet road, the rain image is the exact veil on every pixel no streak covers."""
     J, depth = _uniform(60, 80.0)
-    A = rain_camera.overcast_airlight(DAY_SKY)
+    A = veil.overcast_airlight(DAY_SKY)
     out = rain_camera.rain_image(J, depth, K, 25.0, np.random.default_rng(3), DOWN, np.zeros(3), None, DAY_SKY)
-    veil = rain_camera.rain_veil(J, depth_to_range(depth, K), 25.0, A)
+    veiled = rain_camera.rain_veil(J, depth_to_range(depth, K), 25.0, A)
     rng = np.random.default_rng(3)
     drops = streaks.sample_particles(particles.rain_distribution(25.0), K, SIZE, streaks.DAY_OPTICS, DOWN,
                                      np.zeros(3), rng, 0.1)
     cover = streaks.coverage(streaks.project(drops, K, SIZE, streaks.DAY_OPTICS, 0.1), SIZE, depth)
     assert (cover > 0).any() and (cover == 0).any()
-    np.testing.assert_array_equal(out[cover == 0], veil[cover == 0])
-    assert (out[cover > 0] != veil[cover > 0]).any()
+    np.testing.assert_array_equal(out[cover == 0], veiled[cover == 0])
+    assert (out[cover > 0] != veiled[cover > 0]).any()
 
 
 def test_rate_0_returns_the_image_itself():
@@ -200,18 +215,18 @@ def test_flakes_blend_toward_their_radiance():
     J = np.zeros((SIZE[1], SIZE[0], 3), np.uint8)
     J[..., 0], J[..., 1], J[..., 2] = 20, 60, 110
     depth = np.full(J.shape[:2], 50.0, np.float32)
-    A = rain_camera.overcast_airlight(DAY_SKY)
+    A = veil.overcast_airlight(DAY_SKY)
     covered = []
     for rate in (0.5, 2.0):
-        veil = snow_camera.snow_veil(J, depth_to_range(depth, K), rate, A).astype(float)
+        veiled = snow_camera.snow_veil(J, depth_to_range(depth, K), rate, A).astype(float)
         out = snow_camera.snow_image(J, depth, K, rate, np.random.default_rng(2), DOWN, np.zeros(3)).astype(float)
-        E = 0.9 * (A + veil[int(K[1, 2]):][::4, ::4].reshape(-1, 3).mean(axis=0)) / 2
-        changed = np.any(out != veil, axis=-1)
+        E = 0.9 * (A + veiled[int(K[1, 2]):][::4, ::4].reshape(-1, 3).mean(axis=0)) / 2
+        changed = np.any(out != veiled, axis=-1)
         # The coverage read off the channel farthest from E, then every channel is that blend.
-        k = int(np.argmax(np.abs(E - veil[0, 0])))
-        c = (out[changed, k] - veil[changed, k]) / (E[k] - veil[changed, k])
-        assert changed.sum() > 20 and (c > -0.5 / abs(E[k] - veil[0, 0, k])).all() and (c <= 1 + 1e-6).all()
-        blended = np.round(veil[changed] + c[:, None] * (E - veil[changed]))
+        k = int(np.argmax(np.abs(E - veiled[0, 0])))
+        c = (out[changed, k] - veiled[changed, k]) / (E[k] - veiled[changed, k])
+        assert changed.sum() > 20 and (c > -0.5 / abs(E[k] - veiled[0, 0, k])).all() and (c <= 1 + 1e-6).all()
+        blended = np.round(veiled[changed] + c[:, None] * (E - veiled[changed]))
         assert np.abs(out[changed] - blended).max() <= 1.0
         covered.append(changed.mean())
     assert covered[1] > covered[0]
@@ -265,7 +280,7 @@ def test_the_wet_road_mirrors_the_wall_and_the_sky(monkeypatch):
     grid (2 px here: 0.16 m of height on the wall, the rise being 20 m x v)."""
     monkeypatch.setattr(wet_road, "ROUGHNESS", 0.0)
     rgb, depth, road, rise, u, v = _street()
-    A = rain_camera.overcast_airlight(DAY_SKY)
+    A = veil.overcast_airlight(DAY_SKY)
     M = wet_road.mirrored(rgb, depth, road, K, -DOWN, A)
     margin = 3 / K[1, 1] * 20.0 + 0.2
     sees_wall = road & (rise < 3.0 - margin) & (rise > margin)
@@ -279,7 +294,7 @@ def test_the_wet_road_darkens_by_lekner_dorf_and_mirrors_by_fresnel():
     """Each wet pixel is 60 a_w/a (1 - R)/(1 - r_e) + M R, R Fresnel's at its own incidence, M
     the (rough) mirror's radiance; dry pixels keep their bytes."""
     rgb, depth, road, rise, u, v = _street()
-    A = rain_camera.overcast_airlight(DAY_SKY)
+    A = veil.overcast_airlight(DAY_SKY)
     up = -DOWN
     M = wet_road.mirrored(rgb, depth, road, K, up, A)
     out = wet_road.wet_road(rgb, depth, road, K, up, A).astype(float)
