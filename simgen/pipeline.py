@@ -89,7 +89,7 @@ def degrade_image(rgb: np.ndarray, depth: np.ndarray, cam: rig.Camera, cfg: Scen
         from .weather import rain_camera, snow_camera, veil
         down_cam = cam.T_ego_from_cam[:3, :3].T @ np.array([0.0, 0.0, -1.0])    # the ego stays level
         v = np.zeros(3) if v_cam is None else v_cam
-        sky = veil.sky_colour(rgb, depth)
+        sky = veil.sky_colour(rgb, depth, veil.rendered_sky(cfg.weather.night))
         rgb = rain_camera.rain_image(rgb, depth, cam.K, cfg.weather.rain, weather.rain_camera, down_cam, v, paved, sky)
         rgb = snow_camera.snow_image(rgb, depth, cam.K, cfg.weather.snow, weather.snow_camera, down_cam, v, sky)
     if d.lens_occlusion:

@@ -42,9 +42,19 @@ def overcast_airlight(sky_rgb) -> np.ndarray:
     return np.full(3, float(REC709 @ np.asarray(sky_rgb, np.float64)))
 
 
+def rendered_sky(night: bool) -> np.ndarray:
+    """(3,) the colour the renderer gives the sky: camera.SKY by day; at night the night sky's
+    luminance through the night exposure (simgen.weather.night, night_sensor)."""
+    if not night:
+        return np.asarray(CLEAR_SKY_RGB, np.float64)
+    from . import night as night_model, night_sensor
+    luminance = np.asarray(night_model.SKY_LUMINANCE * night_model.WARM_WHITE, np.float32)[None, None]
+    return night_sensor.clean_image(luminance)[0, 0].astype(np.float64)
+
+
 def sky_colour(rgb: np.ndarray, depth: np.ndarray, fallback=CLEAR_SKY_RGB) -> np.ndarray:
     """(3,) the rendered sky's colour: the mean of rgb (H, W, 3) where ``depth`` (H, W) is 0 (every
-    4th pixel), ``fallback`` where no sky is in view."""
+    4th pixel), ``fallback`` (:func:`rendered_sky`) where no sky is in view."""
     sky = rgb[::4, ::4][depth[::4, ::4] <= 0]
     return sky.mean(axis=0) if len(sky) else np.asarray(fallback, np.float64)
 

@@ -34,6 +34,13 @@ def _uniform(value, depth_m):
 def test_overcast_airlight_is_the_grey_of_the_skys_luminance():
     A = veil.overcast_airlight(DAY_SKY)
     assert np.all(A == A[0]) and A[0] == pytest.approx(0.2126 * 158 + 0.7152 * 188 + 0.0722 * 224)
+    # The sky's colour is read off the image; with none in view, the renderer's sky by day or night.
+    J, depth = _uniform(40, 10.0)
+    J[:5], depth[:5] = (10, 20, 30), 0.0
+    np.testing.assert_allclose(veil.sky_colour(J, depth), [10, 20, 30])
+    np.testing.assert_allclose(veil.sky_colour(J[5:], depth[5:], veil.rendered_sky(False)), DAY_SKY)
+    night = veil.sky_colour(J[5:], depth[5:], veil.rendered_sky(True))
+    assert (night < 40).all() and (night != DAY_SKY).all()
 
 
 @pytest.mark.parametrize("veil_of, extinction, rate", [(rain_camera.rain_veil, particles.rain_extinction, 25.0),
