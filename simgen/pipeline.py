@@ -79,14 +79,17 @@ def degrade_image(rgb: np.ndarray, depth: np.ndarray, cam: rig.Camera, cfg: Scen
     rain wets (None: no wet road), ``v_cam`` (3,) the camera's velocity in its frame (m/s; None:
     at rest), which slants the rain's streaks."""
     from .camera import depth_to_range
+    from .weather import veil
     d = cfg.degrade
     if cam.channel in d.dropped:
         return np.zeros_like(rgb)
     if d.alpha > 0 and cfg.camera.renderer == "pyrender":   # Mitsuba renders fog as a medium
-        rgb = degrade.fog_image(rgb, depth_to_range(depth, cam.K), d.alpha)
+        # The fog scatters the light there is: daylight's airlight, or at night the night sky's.
+        airlight = veil.rendered_sky(True) if cfg.weather.night else degrade.AIRLIGHT
+        rgb = degrade.fog_image(rgb, depth_to_range(depth, cam.K), d.alpha, airlight)
     # Rain, then snowfall, on the rendered range.
     if cfg.weather.particles:
-        from .weather import rain_camera, snow_camera, veil
+        from .weather import rain_camera, snow_camera
         down_cam = cam.T_ego_from_cam[:3, :3].T @ np.array([0.0, 0.0, -1.0])    # the ego stays level
         v = np.zeros(3) if v_cam is None else v_cam
         sky = veil.sky_colour(rgb, depth, veil.rendered_sky(cfg.weather.night))
