@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from clfbev.bilinear_lift import bilinear_lift
 from clfbev.config import ModelConfig
 from clfbev.efficientnet_lite import EfficientNetLite0
 from clfbev.resnet import FPN, ResNet
@@ -205,6 +206,10 @@ class CameraEncoder(nn.Module):
         where and not only that something does (SA-BEV, Zhang et al. 2023, lifts image
         semantics in the same spirit). Needs ``semantic_classes > 0``.
     prior_prob : the initial class probability of the semantic head (the focal-loss prior).
+    lift : ``splat`` (the depth bins above) or ``bilinear`` (each BEV cell samples the context
+        where its column of points at the heights ``lift_heights`` (lidar z, m) projects,
+        :mod:`clfbev.bilinear_lift`; the depth distribution is still predicted, for the depth
+        loss, but lifts nothing).
     """
 
     def __init__(
@@ -222,8 +227,11 @@ class CameraEncoder(nn.Module):
         semantic_lift: bool = False,
         prior_prob: float = 0.01,
         backbone: str = "resnet",
+        lift: str = "splat",
+        lift_heights: tuple[float, ...] = (-1.4, -0.6),
     ) -> None:
         super().__init__()
+        self.lift, self.lift_heights = lift, tuple(float(z) for z in lift_heights)
         if semantic_lift and semantic_classes < 1:
             raise ValueError("semantic_lift needs semantic_classes > 0")
         self.semantic_lift = semantic_lift
@@ -263,7 +271,8 @@ class CameraEncoder(nn.Module):
         return cls(cfg.cam_depth, cfg.cam_width, cfg.fpn_ch, cfg.depth_bins, cfg.context_ch,
                    cfg.image_size, cfg.feature_stride, cfg.pc_range, cfg.cam_bev_voxel,
                    semantic_classes=len(cfg.class_names) if cfg.loss.semantic > 0 else 0,
-                   semantic_lift=cfg.cam_semantic_lift, prior_prob=cfg.prior_prob, backbone=cfg.cam_backbone)
+                   semantic_lift=cfg.cam_semantic_lift, prior_prob=cfg.prior_prob, backbone=cfg.cam_backbone,
+                   lift=cfg.cam_lift, lift_heights=cfg.cam_lift_heights)
 
     def freeze_image_features(self) -> None:
         """Keep the ResNet and the FPN as they are (the pretrained image features): no gradient,
@@ -376,8 +385,11 @@ class CameraEncoder(nn.Module):
             depth, context, semantics = self.heads(fpn)
         if self.semantic_lift:
             context = torch.cat([context, semantics.sigmoid()], dim=2)           # (B, N, C + n_cls, h, w)
-        geom = lift_geometry(CameraGeometry(intrinsics, T_lidar_from_cam, img_aug, self.image_size,
-                                            self.feature_stride, self.depth_bins))
+        cams = CameraGeometry(intrinsics, T_lidar_from_cam, img_aug, self.image_size, self.feature_stride,
+                              self.depth_bins)
+        if self.lift == "bilinear":
+            return bilinear_lift(context, cams, self.pc_range, self.bev_voxel, self.lift_heights), depth, semantics
+        geom = lift_geometry(cams)
         lifted = depth if oracle_bins is None else oracle_depth(depth, oracle_bins)
         return compress_z(splat(lifted, context, geom, self.pc_range, self.bev_voxel)), depth, semantics
 

@@ -26,6 +26,7 @@ from clfbev.settings import (ANCHOR_ROTATIONS, ANCHOR_SIZES, ATTENTION_MODES, CA
                              grid_shape_of)
 
 VARIANTS = ("lidar", "camera", "concat", "mcm", "full")
+CAMERA_LIFTS = ("splat", "bilinear")
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,16 @@ class ModelConfig:
     the camera BEV carries them; needs ``loss.semantic > 0``, see :mod:`clfbev.supervision.perspective`),
     ``cam_oracle_depth`` (a diagnostic, never a recipe: lift every camera cell that a key-frame
     lidar point reaches with that point's depth bin in place of the predicted distribution,
-    :func:`clfbev.camera_encoder.oracle_depth`, in training and evaluation alike).
+    :func:`clfbev.camera_encoder.oracle_depth`, in training and evaluation alike),
+    ``cam_lift`` (``splat``: lift-splat's depth bins; ``bilinear``: every BEV cell samples the
+    image features where its column of points at the heights ``cam_lift_heights`` (lidar z, m; at
+    least one in each z slab) projects, Simple-BEV, :mod:`clfbev.bilinear_lift`),
+    ``cam_heatmap`` (>= 0, the weight of an auxiliary class-centre heatmap head on the camera BEV,
+    CenterPoint's Gaussians and CenterNet's focal loss; 0: no head, :mod:`clfbev.camera_aux`),
+    ``cam_distill`` (>= 0, the weight of the distillation of a frozen lidar teacher's BEV
+    features into the camera BEV through a 1x1 adapter; 0: none) and ``cam_distill_teacher``
+    (that teacher: a training checkpoint with a lidar detector of this config,
+    :mod:`clfbev.supervision.distill`).
     Fusion: ``fusion_dim`` (ConvFuser / MCM / BSM channels), ``attn_heads``, ``attn_mode``
     (exact | window | pooled), ``attn_window``, ``attn_pool_stride``, ``attn_query_chunk``,
     ``attn_ffn_ratio``.
@@ -107,6 +117,11 @@ class ModelConfig:
     cam_z_slabs: int = 1
     cam_semantic_lift: bool = False
     cam_oracle_depth: bool = False
+    cam_lift: str = "splat"
+    cam_lift_heights: tuple[float, ...] = (-1.4, -0.6)  # 0.44 and 1.24 m above the road (the rig's lidar 1.84 m up)
+    cam_heatmap: float = 0.0
+    cam_distill: float = 0.0
+    cam_distill_teacher: str = ""
     # fusion
     fusion_dim: int = 64
     attn_heads: int = 4
@@ -155,7 +170,8 @@ class ModelConfig:
             if not all(v > 0 for v in values):
                 raise ConfigError(f"{name} must be > 0, got {values}")
         non_negative = {"heading_from_motion": self.heading_from_motion, "velocity_beta": self.velocity_beta,
-                        "velocity_weight": self.velocity_weight, "loss.depth_range_power": self.loss.depth_range_power}
+                        "velocity_weight": self.velocity_weight, "loss.depth_range_power": self.loss.depth_range_power,
+                        "cam_heatmap": self.cam_heatmap, "cam_distill": self.cam_distill}
         for name, value in non_negative.items():
             if not value >= 0:
                 raise ConfigError(f"{name} must be >= 0, got {value}")
@@ -178,6 +194,17 @@ class ModelConfig:
             raise ConfigError("sweep_offsets and sweep_trail need sweep_bands > 0 (they join the bands)")
         if self.sweep_trail and not self.sweep_trail_in_bev and not self.velocity_tower:
             raise ConfigError("sweep_trail_in_bev false needs a velocity_tower (nothing else would read the trails)")
+        if self.cam_lift not in CAMERA_LIFTS:
+            raise ConfigError(f"cam_lift must be one of {CAMERA_LIFTS}, got {self.cam_lift!r}")
+        slab_of = [int((z - self.pc_range[2]) // self.cam_bev_voxel[2]) for z in self.cam_lift_heights]
+        if self.cam_lift == "bilinear" and sorted(set(slab_of)) != list(range(self.cam_z_slabs)):
+            raise ConfigError(f"cam_lift_heights {self.cam_lift_heights} must lie in pc_range's z [{self.pc_range[2]}, "
+                              f"{self.pc_range[5]}) with at least one in each of the {self.cam_z_slabs} cam_z_slabs")
+        if self.cam_oracle_depth and self.cam_lift != "splat":
+            raise ConfigError("cam_oracle_depth replaces the splat's depth: it needs cam_lift 'splat'")
+        if (self.cam_distill > 0) != bool(self.cam_distill_teacher):
+            raise ConfigError("cam_distill > 0 and cam_distill_teacher (a lidar run's checkpoint) go together, "
+                              f"got cam_distill {self.cam_distill} and cam_distill_teacher {self.cam_distill_teacher!r}")
         if self.cam_semantic_lift and not self.loss.semantic > 0:
             raise ConfigError("cam_semantic_lift needs the perspective head: set loss.semantic > 0")
         if len(self.loss.code_weights) < self.code_size:

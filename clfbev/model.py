@@ -40,6 +40,7 @@ import torch
 from torch import Tensor, nn
 
 from clfbev.anchors import make_anchors
+from clfbev.camera_aux import CameraAuxOutputs, CameraBEVHeads
 from clfbev.camera_encoder import CameraEncoder, CameraGeometry
 from clfbev.config import VARIANTS, ModelConfig
 from clfbev.data import Batch
@@ -60,6 +61,8 @@ class Encoded(NamedTuple):
     motion : (B, sweep_channels, ny, nx) the lidar's motion features for the velocity tower, None
         without a tower (or without sweep bands).
     attention : the attention modules' inputs.
+    camera : (B, cam_bev_channels, ny, nx) the camera BEV (what the fusion or the backbone
+        reads of the camera), None without a camera: the auxiliary heads' input.
     """
 
     bev: Tensor
@@ -67,6 +70,7 @@ class Encoded(NamedTuple):
     semantics: Tensor | None
     motion: Tensor | None
     attention: AttentionInputs
+    camera: Tensor | None = None
 
 
 class BEVBackbone(nn.Module):
@@ -168,6 +172,9 @@ class CLFusionBEV(nn.Module):
         # For decoding; the training targets take theirs from the config (clfbev.supervision.targets).
         anchors = make_anchors(cfg.class_names, cfg.head_feature_size, cfg.pc_range, cfg.anchor_rotations)
         self.register_buffer("anchors", anchors, persistent=False)  # (ny, nx, n_cls, n_rot, 7)
+        # The camera BEV's auxiliary heads, for training (clfbev.camera_aux); None unless asked
+        # for. Built last, so every other module's seeded start is the same with them or without.
+        self.camera_aux = CameraBEVHeads.from_config(cfg) if uses_camera else None
 
     # ------------------------------------------------------------------ forward
 
@@ -191,9 +198,9 @@ class CLFusionBEV(nn.Module):
         if self.variant == "lidar":
             return Encoded(lidar.bev, None, None, motion, AttentionInputs())
         if self.variant == "camera":
-            return Encoded(cam_bev, depth, semantics, None, AttentionInputs())
+            return Encoded(cam_bev, depth, semantics, None, AttentionInputs(), cam_bev)
         fused, attention = self.fuse(lidar.bev, cam_bev)
-        return Encoded(fused, depth, semantics, motion, attention)
+        return Encoded(fused, depth, semantics, motion, attention, cam_bev)
 
     def _oracle_bins(self, batch: Batch) -> Tensor | None:
         """(B, N, h, w) the key-frame lidar's depth bin per camera cell (-1: none) with
@@ -224,7 +231,8 @@ class CLFusionBEV(nn.Module):
         camera's depth distribution and class logits, and the attention modules' inputs."""
         enc = self._encode(batch)
         head = self.head(self.backbone(enc.bev), enc.motion)
-        return ModelOutputs(head, enc.depth, enc.semantics, enc.attention)
+        aux = self.camera_aux(enc.camera) if self.camera_aux is not None and self.training else CameraAuxOutputs()
+        return ModelOutputs(head, enc.depth, enc.semantics, enc.attention, aux.heatmap, aux.distill)
 
     # ------------------------------------------------------------------ training and inference
 

@@ -32,9 +32,15 @@ class ModelOutputs(NamedTuple):
     depth : (B, N, D, h, w) the camera's depth distribution, None without a camera.
     semantics : (B, N, n_classes, h, w) the perspective head's logits, None without one.
     attention : :class:`AttentionInputs`.
+    cam_heatmap : (B, n_classes, ny, nx) the camera BEV's auxiliary centre logits, in training with
+        ``cam_heatmap > 0`` only (:mod:`clfbev.camera_aux`); else None.
+    cam_distill : (B, teacher channels, ny, nx) the camera BEV through the distillation adapter,
+        in training with ``cam_distill > 0`` only; else None.
     """
 
     head: HeadOutput
     depth: Tensor | None
     semantics: Tensor | None
     attention: AttentionInputs
+    cam_heatmap: Tensor | None = None
+    cam_distill: Tensor | None = None

@@ -55,7 +55,8 @@ from clfbev.run.torchvision_init import TORCHVISION
 from clfbev.run.train_config import TrainConfig, check_resumable
 from clfbev.supervision.targets import Targets, TrainingCollate, training_loss
 
-LOSS_KEYS = ("loss", "loss_cls", "loss_reg", "loss_vel", "loss_moving", "loss_dir", "loss_depth")
+LOSS_KEYS = ("loss", "loss_cls", "loss_reg", "loss_vel", "loss_moving", "loss_dir", "loss_depth", "loss_heatmap",
+             "loss_distill")
 
 
 def lr_at(step: int, total: int, tc: TrainConfig) -> float:
@@ -215,9 +216,10 @@ def load_training_data(data: str | Path, cfg: ModelConfig, variant: str, tc: Tra
     ``tc.feature_cache`` the training split reads the cached image features, and only the BEV is
     augmented. The ``camera`` variant's training samples hold the key sweep alone: its lidar
     points are only its depth targets, which read the key sweep (:mod:`clfbev.supervision.depth`),
-    the other sweeps would only be loaded, moved and shuffled."""
+    and the other sweeps would only be loaded, moved and shuffled (with ``cam_distill`` it keeps
+    them all: the lidar teacher reads them)."""
     train_cfg = cfg.data_config()
-    if variant == "camera":
+    if variant == "camera" and not cfg.cam_distill > 0:
         train_cfg = replace(train_cfg, n_sweeps=1)
     if tc.feature_cache:
         train_set = CachedFeatureDataset(data, tc.version, tc.train_split, train_cfg,

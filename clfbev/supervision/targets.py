@@ -9,7 +9,8 @@ their classes are computed in the loader workers, beside the next step's trainin
     loss = detection loss (paper eq. 9) + depth weight x depth loss + semantic weight x semantic loss
 
 the camera terms only for the variants with a camera (and the semantic one only with a
-perspective head, ``cfg.loss.semantic > 0``).
+perspective head, ``cfg.loss.semantic > 0``); with ``cam_heatmap`` or ``cam_distill`` the camera
+BEV's own terms too (:mod:`clfbev.supervision.camera_bev`).
 """
 
 from __future__ import annotations
@@ -25,7 +26,9 @@ from clfbev.config import ModelConfig
 from clfbev.data import Batch, Sample, collate
 from clfbev.outputs import ModelOutputs
 from clfbev.supervision.assign import AnchorTargets, assign_targets, stack_targets
+from clfbev.supervision.camera_bev import add_camera_bev_losses, camera_bev_targets, wants_bev_targets
 from clfbev.supervision.depth import bins_of, depth_loss, nearest_lidar_points
+from clfbev.supervision.distill import load_teacher
 from clfbev.supervision.losses import detection_loss
 from clfbev.supervision.perspective import cell_classes, semantic_loss
 
@@ -39,24 +42,32 @@ class Targets:
         point, -1 where none (:mod:`clfbev.supervision.depth`); None without cameras.
     semantic : (B, N, h, w) int64 class of that point's box, n_classes for background, -1 where
         none (:mod:`clfbev.supervision.perspective`); None without a perspective head.
+    heatmap : (B, n_classes, ny, nx) the boxes' centre heatmap on the camera BEV grid
+        (:mod:`clfbev.supervision.heatmap`); None without ``cam_heatmap`` or ``cam_distill``.
+    teacher : (B, C_teacher, ny, nx) the frozen lidar teacher's BEV features
+        (:mod:`clfbev.supervision.distill`); None without ``cam_distill``.
     """
 
     anchor: AnchorTargets
     depth: Tensor | None = None
     semantic: Tensor | None = None
+    heatmap: Tensor | None = None
+    teacher: Tensor | None = None
 
     def to(self, device: torch.device | str) -> "Targets":
         """A copy with every tensor on ``device``."""
         return Targets(self.anchor.to(device),
-                       None if self.depth is None else self.depth.to(device),
-                       None if self.semantic is None else self.semantic.to(device))
+                       *(None if t is None else t.to(device) for t in (self.depth, self.semantic, self.heatmap,
+                                                                       self.teacher)))
 
 
 @torch.no_grad()
-def build_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool = True) -> Targets:
+def build_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool = True,
+                  teacher: torch.nn.Module | None = None) -> Targets:
     """The :class:`Targets` of ``batch`` (any device) for a model of ``cfg`` with ``anchors``
     (ny, nx, n_cls, n_rot, 7), :func:`clfbev.anchors.make_anchors` of the config; the camera
-    targets only with ``cameras``."""
+    targets only with ``cameras``; ``teacher`` (:func:`clfbev.supervision.distill.load_teacher`)
+    with ``cfg.cam_distill > 0``."""
     thresholds = match_thresholds(cfg.class_names)
     anchor = stack_targets([
         assign_targets(anchors, boxes[:, : cfg.code_size], labels, thresholds, n_dir_bins=cfg.n_dir_bins,
@@ -71,23 +82,39 @@ def build_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool
     semantic = None
     if cfg.loss.semantic > 0:
         semantic = cell_classes(nearest, batch.points, batch.gt_boxes, batch.gt_labels, len(cfg.class_names))
-    return Targets(anchor, bins_of(depth, cfg.depth_bins), semantic)
+    heatmap = teacher_features = None
+    if wants_bev_targets(cfg):
+        heatmap, teacher_features = camera_bev_targets(batch, cfg, teacher)
+    return Targets(anchor, bins_of(depth, cfg.depth_bins), semantic, heatmap, teacher_features)
 
 
 class TrainingCollate:
     """The training loader's ``collate_fn``: samples -> (Batch, :class:`Targets`).
 
     Picklable (the loader sends it to its workers); the anchors are made from ``cfg`` in each
-    process on first use. ``cameras=False`` (the ``lidar`` variant) skips the camera targets.
+    process on first use, and so is the distillation's teacher (``cfg.cam_distill_teacher``).
+    ``cameras=False`` (the ``lidar`` variant) skips the camera targets.
     """
 
     def __init__(self, cfg: ModelConfig, cameras: bool = True) -> None:
         self.cfg, self.cameras = cfg, cameras
         self._anchors: Tensor | None = None
+        self._teacher: torch.nn.Module | None = None
+        if cameras and cfg.cam_distill > 0:
+            # Loaded here, in the main process, so that a bad teacher file stops the run with one
+            # line before any loader worker starts (each worker loads its own).
+            self._teacher = load_teacher(cfg.cam_distill_teacher, cfg)
 
     def __call__(self, samples: list[Sample]) -> tuple[Batch, Targets]:
         batch = collate(samples)
-        return batch, build_targets(batch, self.cfg, self.anchors, self.cameras)
+        return batch, build_targets(batch, self.cfg, self.anchors, self.cameras, self.teacher)
+
+    @property
+    def teacher(self) -> torch.nn.Module | None:
+        """The frozen lidar teacher of ``cfg.cam_distill`` (loaded on first use), or None without."""
+        if self._teacher is None and self.cameras and self.cfg.cam_distill > 0:
+            self._teacher = load_teacher(self.cfg.cam_distill_teacher, self.cfg)
+        return self._teacher
 
     @property
     def anchors(self) -> Tensor:
@@ -98,15 +125,16 @@ class TrainingCollate:
         return self._anchors
 
     def __getstate__(self) -> dict:
-        return {"cfg": self.cfg, "cameras": self.cameras, "_anchors": None}    # anchors: rebuilt, not shipped
+        # The anchors and the teacher are rebuilt in each process, not shipped.
+        return {"cfg": self.cfg, "cameras": self.cameras, "_anchors": None, "_teacher": None}
 
 
 def training_loss(outputs: ModelOutputs, targets: Targets, cfg: ModelConfig) -> dict[str, Tensor]:
     """The training loss of a batch: the dict of :func:`clfbev.supervision.losses.detection_loss`
     (``loss``, ``loss_cls``, ``loss_reg``, ``loss_reg_theta``, ``loss_dir``, ``loss_vel``,
     ``num_pos``) with, where the model has a camera, ``loss_depth`` (reported even at weight 0)
-    and, with a perspective head, ``loss_semantic``, both unweighted; ``loss`` is the weighted
-    total."""
+    and, with a perspective head, ``loss_semantic``, and with the camera BEV's aux heads
+    ``loss_heatmap`` and ``loss_distill``, all unweighted; ``loss`` is the weighted total."""
     losses = detection_loss(outputs.head, targets.anchor, cfg.loss, cfg.velocity_balance, cfg.velocity_beta,
                             cfg.velocity_weight)
     if outputs.depth is None:
@@ -119,12 +147,15 @@ def training_loss(outputs: ModelOutputs, targets: Targets, cfg: ModelConfig) -> 
         losses["loss"] = losses["loss"] + cfg.loss.depth * losses["loss_depth"]
     if outputs.semantics is not None:
         losses["loss"] = losses["loss"] + cfg.loss.semantic * losses["loss_semantic"]
-    return losses
+    return add_camera_bev_losses(losses, outputs.cam_heatmap, outputs.cam_distill, targets.heatmap, targets.teacher,
+                                 cfg)
 
 
 def batch_loss(model, batch: Batch) -> dict[str, Tensor]:
     """:func:`training_loss` of ``model`` (a :class:`clfbev.model.CLFusionBEV`) on ``batch``, its
     targets built here as :class:`TrainingCollate` builds them in the loader: for a single batch
     outside the training loop (tests, benchmarks)."""
-    targets = build_targets(batch, model.cfg, model.anchors, cameras=model.camera_encoder is not None)
+    cameras = model.camera_encoder is not None
+    teacher = load_teacher(model.cfg.cam_distill_teacher, model.cfg) if cameras and model.cfg.cam_distill > 0 else None
+    targets = build_targets(batch, model.cfg, model.anchors, cameras, teacher)
     return training_loss(model(batch), targets, model.cfg)
