@@ -138,6 +138,11 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=3)
     args = ap.parse_args()
     torch.set_num_threads(1)
+    try:                                   # as `clfbev train` does; a base tree may predate it
+        from clfbev.run.memory import keep_freed_memory
+        keep_freed_memory()
+    except ImportError:
+        pass
     if args.arm:
         return one_arm(args)
     if args.base_tree:

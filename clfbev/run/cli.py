@@ -41,11 +41,12 @@ from clfbev.run.attention_plot import draw_attention
 from clfbev.run.attention_query import attention_modules
 from clfbev.run.checkpoint import load_model
 from clfbev.run.efficientnet_init import EFFICIENTNET_LITE0
-from clfbev.run.image_init import camera_fields, init_camera_encoder, resolve_image_init
-from clfbev.run.torchvision_init import TORCHVISION
 from clfbev.run.evaluate import EVAL_SCORE_THR, evaluate_model, predict_split, write_results
+from clfbev.run.image_init import camera_fields, init_camera_encoder, resolve_image_init
+from clfbev.run.memory import keep_freed_memory
 from clfbev.run.pretrain import PretrainConfig, final_loss, pretrain
 from clfbev.run.sheets import check_records, load_results, sample_sheet
+from clfbev.run.torchvision_init import TORCHVISION
 from clfbev.run.train import train
 from clfbev.run.train_config import (SHIPPED, VERSION, add_setting_options, add_train_arguments, settings_from,
                                      train_config_from, whole_number)
@@ -85,6 +86,7 @@ def cmd_train(args) -> None:
     check_writable(args.out)
     if args.threads:
         torch.set_num_threads(args.threads)
+    keep_freed_memory()
     cfg = load_config(args.config)
     if args.no_depth_loss:
         cfg = replace(cfg, loss=replace(cfg.loss, depth=0.0))
