@@ -20,7 +20,8 @@ def bench_fog(quick: bool) -> dict:
     from simgen.config import load_preset, with_degradation
     from simgen.lidar import LidarScanner
     from simgen.mitsuba_camera import actor_poses_at
-    from simgen.pipeline import _renderer, build_world, degrade_image, degrade_sweep
+    from simgen.pipeline import _renderer, build_world
+    from simgen.sensor_effects import degrade_image, degrade_sweep
     from simgen.settings import MakeSettings, weather_streams
     cfg = with_degradation(load_preset("urban"), fog=5)
     s = MakeSettings(cfg, 1, 0, 1, "v1.0-sim")

@@ -72,7 +72,7 @@ def figures(cfg, s, sw, kind: str, rate: float) -> dict:
 def timings(cfg, s, scanner, sw, repeats: int) -> dict:
     """Median ms: the sweep's ray casting, and degrade_sweep under each weather."""
     from simgen.config import with_weather
-    from simgen.pipeline import degrade_sweep
+    from simgen.sensor_effects import degrade_sweep
     from simgen.settings import weather_streams
     out = {"scan": median_ms(lambda: scanner.scan(0.05, np.random.default_rng(0)), repeats)}
     for kind, rate in WEATHERS:

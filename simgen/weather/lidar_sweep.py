@@ -1,7 +1,7 @@
 """A sweep's rays through the weather: which ray each row of the points is, what it still
 reports, and one precipitation applied to the points (:mod:`simgen.weather.lidar_particles`).
 
-The points are those ``simgen.pipeline.degrade_sweep`` carries: x, y, z, intensity, ring (the
+The points are those ``simgen.sensor_effects.degrade_sweep`` carries: x, y, z, intensity, ring (the
 sweep's columns), then the lidarseg label (LABEL_COLUMN) and the index of the row's ray
 (RAY_COLUMN). The rays are the sweep's n0 returns, then its k missed rays (``Sweep.miss_*``): a
 particle can echo in a ray that met nothing.

@@ -13,7 +13,8 @@ from simgen import degrade
 from simgen import lidarseg
 from simgen.config import load_preset, with_degradation
 from simgen.lidar import LidarScanner
-from simgen.pipeline import MakeSettings, build_world, degrade_sweep
+from simgen.pipeline import MakeSettings, build_world
+from simgen.sensor_effects import degrade_sweep
 from simgen.settings import weather_streams
 from simgen.rig import T_ego_from_lidar
 
@@ -339,7 +340,7 @@ def test_one_alpha_drives_camera_and_lidar():
     from simgen import rig
     from simgen.camera import depth_to_range
     from simgen.lidar import Sweep
-    from simgen.pipeline import degrade_image
+    from simgen.sensor_effects import degrade_image
     cfg = with_degradation(load_preset("tiny"), fog_visibility=150.0)
     alpha = cfg.degrade.alpha
     assert alpha == pytest.approx(math.log(20) / 150.0)

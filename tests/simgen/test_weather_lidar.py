@@ -3,19 +3,17 @@ against the lidar equation computed here, the drawn particles against a brute-fo
 particle in the beams, the wet road, and the pipeline's paired bytes."""
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
 from simgen import degrade, lidarseg
 from simgen.config import load_preset, with_degradation, with_weather
 from simgen.lidar import N_BEAMS, LidarScanner
-from simgen.pipeline import build_world, degrade_sweep
+from simgen.pipeline import build_world
+from simgen.sensor_effects import degrade_sweep
 from simgen.settings import MakeSettings, weather_streams
 from simgen.weather import lidar_particles as LP
 from simgen.weather import lidar_sweep as LS
-from simgen.weather import particles as P
 from simgen.weather import rain_lidar, snow_lidar
 
 

@@ -95,7 +95,7 @@ def test_fog_at_night_scatters_the_night_sky_not_daylight():
     import numpy as np
     from simgen import degrade, rig
     from simgen.config import load_preset, with_degradation, with_weather
-    from simgen.pipeline import degrade_image
+    from simgen.sensor_effects import degrade_image
     from simgen.settings import MakeSettings, weather_streams
     from simgen.weather import veil
     cam = rig.cameras((160, 90))[0]
