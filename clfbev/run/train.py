@@ -44,6 +44,7 @@ from clfbev.errors import CheckpointError, ConfigError, DataError, TrainError
 from clfbev.feature_cache import CachedFeatureDataset, FeatureCache, encoder_identity
 from clfbev.gt_paste import GTDatabase
 from clfbev.model import CLFusionBEV
+from clfbev.run.camera_init import init_from_camera_run
 from clfbev.run.checkpoint import REQUIRED, RESUME_FIELDS, Checkpoints, check_matches, load_checkpoint
 from clfbev.run.efficientnet_init import EFFICIENTNET_LITE0
 from clfbev.run.epochs import EpochSamples, epoch_batches, precise_batchnorm
@@ -239,9 +240,9 @@ def load_training_data(data: str | Path, cfg: ModelConfig, variant: str, tc: Tra
 def start_state(cfg: ModelConfig, variant: str, tc: TrainConfig, device: torch.device, ckpt: dict | None,
                 path: Path) -> TrainState:
     """The model seeded with ``tc.seed`` (its camera encoder then loaded from ``tc.image_init``
-    where given, its lidar detector from ``tc.lidar_init``, and its image features frozen with
-    ``tc.image_freeze``) and its AdamW, or both as checkpoint ``ckpt`` (read from ``path``) left
-    them, with the torch RNG state."""
+    where given, its lidar detector from ``tc.lidar_init``, its camera branch from
+    ``tc.camera_init``, and its image features frozen with ``tc.image_freeze``) and its AdamW, or
+    both as checkpoint ``ckpt`` (read from ``path``) left them, with the torch RNG state."""
     torch.manual_seed(tc.seed)
     if tc.image_freeze and tc.image_init in (TORCHVISION, EFFICIENTNET_LITE0):
         raise ConfigError(f"--image-freeze keeps the ResNet and FPN of an encoder checkpoint; --image-init "
@@ -256,6 +257,10 @@ def start_state(cfg: ModelConfig, variant: str, tc: TrainConfig, device: torch.d
             raise ConfigError(f"--image-init {tc.image_init}: the variant '{variant}' has no camera encoder")
         started = init_camera_encoder(model.camera_encoder, tc.image_init, cfg)
         print(f"clfbev train: camera encoder {started}", file=sys.stderr)
+    if tc.camera_init and ckpt is None:    # after --image-init, whose encoder it replaces
+        if model.camera_encoder is None:
+            raise ConfigError(f"--camera-init {tc.camera_init}: the variant '{variant}' has no camera encoder")
+        print(f"clfbev train: {init_from_camera_run(model, tc.camera_init, cfg)}", file=sys.stderr)
     if tc.image_freeze:
         if model.camera_encoder is None:
             raise ConfigError(f"--image-freeze: the variant '{variant}' has no camera encoder")
@@ -348,7 +353,9 @@ def record_step(loop: Loop, state: TrainState, losses: dict[str, Tensor], grad_n
                                            "train/samples_per_s": rate})
     loop.bar.set_postfix(epoch=state.epoch, loss=f"{state.loss:.3f}", samples_s=f"{rate:.2f}")
     loop.bar.update(1)
-    if loop.ckpts.due(state.step):
+    # The last step's last.pt is end_epoch's, after precise BatchNorm: one written here would let a
+    # run killed before that resume as finished, without it.
+    if loop.ckpts.due(state.step) and state.step < loop.data.total:
         loop.ckpts.save(loop.ckpts.last, state)
 
 

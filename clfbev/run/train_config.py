@@ -61,7 +61,9 @@ class TrainConfig:
     ``image_freeze``: that encoder's ResNet and FPN stay fixed
     (:meth:`clfbev.camera_encoder.CameraEncoder.freeze_image_features`).
     ``lidar_init``: the lidar encoder, BEV backbone and head start from a trained run's
-    checkpoint (:mod:`clfbev.run.lidar_init`).
+    checkpoint (:mod:`clfbev.run.lidar_init`). ``camera_init``: the camera encoder (and the camera
+    BEV's auxiliary heads) start from a trained run's checkpoint (:mod:`clfbev.run.camera_init`),
+    replacing what ``image_init`` loaded; with ``lidar_init``, BEVFusion's fusion stage.
     """
 
     train_split: str = field(default="sim-train", metadata=setting(
@@ -123,6 +125,10 @@ class TrainConfig:
         "start the lidar encoder, the BEV backbone and the head from a training checkpoint with a lidar "
         "detector of this config, e.g. a lidar run's RUN/last.pt (not on --resume; BEVFusion's second stage: "
         "the fusion keeps its seeded start, the camera encoder --image-init's)", metavar="PATH"))
+    camera_init: str = field(default="", metadata=setting(
+        "start the camera encoder (and the camera BEV's auxiliary heads) from a training checkpoint with a "
+        "camera branch of this config, e.g. a camera run's RUN/last.pt (not on --resume; it replaces what "
+        "--image-init loaded; with --lidar-init, the fusion stage of scripts/staged.sh)", metavar="PATH"))
     feature_cache: str = field(default="", metadata=setting(
         "read the camera's image features from this cache of `clfbev cache-features` (made with the same "
         "--image-init; needs --image-freeze) instead of decoding the images and running the ResNet and FPN; "
