@@ -6,7 +6,7 @@ Lift-splat places a feature cell's context along its ray, weighted by the predic
 far BEV cell gets features only where some ray's depth bin lands in it, and only as much as the
 depth head believes it. Here every BEV cell of the grid takes a column of 3D points (its x, y
 centre, at fixed heights), projects each point into every camera through the same geometry the
-splat uses (:class:`clfbev.camera_encoder.CameraGeometry`: ``img_aug @ K @ T_cam_from_lidar``),
+splat uses (:class:`clfbev.geometry.CameraGeometry`: ``img_aug @ K @ T_cam_from_lidar``),
 and samples the context map bilinearly there. A far cell is filled wherever a camera sees it,
 whatever the depth head says; the price is that all the cells along one ray share that ray's
 features (no depth to tell them apart: the BEV backbone has to).
@@ -64,7 +64,7 @@ def project(points: Tensor, cams) -> tuple[Tensor, Tensor]:
     """Points into every camera's feature map.
 
     points : (P, 3) lidar frame. cams : the B x N cameras
-    (:class:`clfbev.camera_encoder.CameraGeometry`). Returns ``xy`` (B, N, P, 2) float64, the
+    (:class:`clfbev.geometry.CameraGeometry`). Returns ``xy`` (B, N, P, 2) float64, the
     continuous feature-map coordinates in cell units with cell (i, j)'s centre at (j, i), and
     ``valid`` (B, N, P) bool: in front at camera z >= the depth bins' d_min and inside the
     network image.
@@ -104,7 +104,7 @@ def bilinear_lift(context: Tensor, cams, pc_range: tuple[float, ...],
     """The camera BEV of ``context`` by bilinear sampling (module docstring).
 
     context : (B, N, C, h, w) per-cell features of the N cameras (h, w = image_size / stride).
-    cams : their geometry (:class:`clfbev.camera_encoder.CameraGeometry`).
+    cams : their geometry (:class:`clfbev.geometry.CameraGeometry`).
     pc_range, bev_voxel : the camera voxel grid (nz, ny, nx), lidar frame.
     heights : lidar-frame z (metres) of each column's points, at least one in each z slab.
 

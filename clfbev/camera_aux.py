@@ -14,6 +14,7 @@ detector's state dict (so a resumed run continues them) and unused at inference.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -21,7 +22,15 @@ from torch import Tensor, nn
 
 from clfbev.config import ModelConfig
 from clfbev.layers import conv_bn_relu
-from clfbev.supervision.heatmap import heatmap_prior_bias
+
+
+# The heatmap head's initial centre probability (CenterPoint's heatmap bias of -2.19).
+HEATMAP_PRIOR = 0.1
+
+
+def heatmap_prior_bias() -> float:
+    """The logit of :data:`HEATMAP_PRIOR`: the heatmap head's initial bias."""
+    return -math.log((1 - HEATMAP_PRIOR) / HEATMAP_PRIOR)
 
 
 class CameraAuxOutputs(NamedTuple):

@@ -28,7 +28,6 @@ Conventions
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -37,44 +36,9 @@ from torch import Tensor, nn
 from clfbev.bilinear_lift import bilinear_lift
 from clfbev.config import ModelConfig
 from clfbev.efficientnet_lite import EfficientNetLite0
+from clfbev.geometry import CameraGeometry, depth_bin_centres
 from clfbev.resnet import FPN, ResNet
 from clfbev.settings import grid_shape_of
-
-
-class CameraGeometry(NamedTuple):
-    """Where the camera feature cells look: what lift-splat lifts with and the depth target
-    projects the lidar with.
-
-    intrinsics : (B, N, 3, 3) K of the ORIGINAL images (before ``img_aug``).
-    T_lidar_from_cam : (B, N, 4, 4) camera -> lidar frame.
-    img_aug : (B, N, 3, 3) original -> augmented pixels, or None for identity.
-    image_size : (H, W) of the augmented image the network sees.
-    feature_stride : s, the feature map's stride; H and W are multiples of it.
-    depth_bins : (d_min, d_max, d_step) of camera z, see :func:`depth_bin_centres`.
-    """
-
-    intrinsics: Tensor
-    T_lidar_from_cam: Tensor
-    img_aug: Tensor | None
-    image_size: tuple[int, int]
-    feature_stride: int
-    depth_bins: tuple[float, float, float]
-
-    @classmethod
-    def of_batch(cls, batch, cfg) -> "CameraGeometry":
-        """The cameras of a :class:`clfbev.data.Batch` as the model of ``cfg`` (a
-        :class:`clfbev.config.ModelConfig`) sees them."""
-        return cls(batch.intrinsics, batch.T_lidar_from_cam, batch.img_aug, cfg.image_size, cfg.feature_stride,
-                   cfg.depth_bins)
-
-
-def depth_bin_centres(depth_bins: tuple[float, float, float]) -> Tensor:
-    """(D,) float32 depths (m, camera z) of the bins of ``(d_min, d_max, d_step)``, at bin centres."""
-    d_min, d_max, d_step = (float(v) for v in depth_bins)
-    n = int(round((d_max - d_min) / d_step)) if d_step > 0 else 0
-    if n < 1 or d_min <= 0:
-        raise ValueError(f"depth_bins (d_min, d_max, d_step) must give >= 1 bin at d_min > 0, got {depth_bins}")
-    return d_min + d_step * (torch.arange(n, dtype=torch.float32) + 0.5)
 
 
 def lift_geometry(cams: CameraGeometry) -> Tensor:

@@ -41,7 +41,7 @@ from torch import Tensor
 from clfbev import corruptions
 from clfbev.errors import DataError
 from clfbev.sensor_files import IMAGE_MEAN, IMAGE_STD, load_image, load_points, resize_and_crop
-from clfbev.settings import DETECTION_CLASSES, DataConfig
+from clfbev.settings import DataConfig
 
 CAMERAS = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
 LIDAR = "LIDAR_TOP"

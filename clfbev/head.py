@@ -31,14 +31,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from clfbev.anchors import anchor_class_ids
+from clfbev.geometry import DIR_OFFSET
 from clfbev.layers import BN_EPS, BN_MOMENTUM, conv_bn_relu
 from clfbev.ops.boxes import decode_boxes, limit_period, rotated_nms
-
-# Direction bins start at this heading: with 2 bins, bin 0 is [-pi/4, 3pi/4) and bin 1
-# [3pi/4, 7pi/4). The bin borders sit on the diagonals, away from the headings along and
-# across the road where most objects are, so few targets fall right on a border (mmdet3d's
-# nuScenes PointPillars uses the same -pi/4).
-DIR_OFFSET = -0.25 * math.pi
 
 # Largest predicted log size ratio at decoding (exp(4) ~ 55x the anchor): keeps an untrained
 # head from producing inf sizes, far beyond any real box.
@@ -249,13 +244,6 @@ class Detections(NamedTuple):
     boxes: Tensor
     scores: Tensor
     labels: Tensor
-
-
-def direction_target(yaw: Tensor, dir_offset: float = DIR_OFFSET, n_bins: int = 2) -> Tensor:
-    """Direction bin of a heading (eq. 8): ``floor(limit_period(yaw - offset, 0, 2 pi) / (2 pi /
-    n_bins))``. yaw (...,) radians, lidar frame -> (...,) int64 in ``[0, n_bins)``."""
-    wrapped = limit_period(yaw - dir_offset, 0.0, 2.0 * math.pi)
-    return torch.floor(wrapped / (2.0 * math.pi / n_bins)).long().clamp(0, n_bins - 1)
 
 
 def correct_direction(yaw: Tensor, dir_bin: Tensor, dir_offset: float = DIR_OFFSET, n_bins: int = 2) -> Tensor:

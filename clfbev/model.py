@@ -41,15 +41,15 @@ from torch import Tensor, nn
 
 from clfbev.anchors import make_anchors
 from clfbev.camera_aux import CameraAuxOutputs, CameraBEVHeads
-from clfbev.camera_encoder import CameraEncoder, CameraGeometry
+from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import VARIANTS, ModelConfig
 from clfbev.data import Batch
 from clfbev.fusion import BSM, MCM, ConvFuser
+from clfbev.geometry import CameraGeometry, nearest_depth_bins
 from clfbev.head import AnchorHead, Detections, decode
 from clfbev.layers import BN_EPS, BN_MOMENTUM, conv_bn_relu
 from clfbev.lidar_encoder import LidarEncoder
 from clfbev.outputs import AttentionInputs, ModelOutputs
-from clfbev.supervision.depth import depth_targets
 
 
 class Encoded(NamedTuple):
@@ -209,7 +209,7 @@ class CLFusionBEV(nn.Module):
             return None
         cfg = self.cfg
         cams = CameraGeometry.of_batch(batch, cfg)
-        return depth_targets(batch.points, cams, batch.pasted or None)
+        return nearest_depth_bins(batch.points, cams, batch.pasted or None)
 
     def fuse(self, lidar_bev: Tensor, cam_bev: Tensor) -> tuple[Tensor, AttentionInputs]:
         """MCM -> ConvFuser -> BSM, as the variant has them: (B, Cl, ny, nx), (B, Cc, ny, nx) ->

@@ -23,10 +23,10 @@ import cv2
 import numpy as np
 import torch
 
-from clfbev.camera_encoder import CameraGeometry
 from clfbev.config import ModelConfig
 from clfbev.data import CAMERAS, Batch, NuScenesDetection, Sample, collate
 from clfbev.errors import DataError
+from clfbev.geometry import CameraGeometry
 from clfbev.supervision.dense import DenseTargets, cell_depth_and_class, centre_targets
 
 DENSE_DIR = "dense"

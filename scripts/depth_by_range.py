@@ -24,9 +24,8 @@ BANDS = ((0, 10), (10, 20), (20, 35), (35, 52))
 def bin_errors(model, dataset, every: int) -> tuple[np.ndarray, np.ndarray]:
     """(n,) the target depth in metres of every lidar-seen camera cell of every ``every``-th
     sample, and (n,) its arg-max bin's distance from the target bin, in bins."""
-    from clfbev.camera_encoder import CameraGeometry, depth_bin_centres
     from clfbev.data import collate
-    from clfbev.supervision.depth import depth_targets
+    from clfbev.geometry import CameraGeometry, depth_bin_centres, nearest_depth_bins
     cfg = model.cfg
     centres = depth_bin_centres(cfg.depth_bins)
     depth, error = [], []
@@ -34,7 +33,7 @@ def bin_errors(model, dataset, every: int) -> tuple[np.ndarray, np.ndarray]:
         for i in range(0, len(dataset), every):
             batch = collate([dataset[i]])
             cams = CameraGeometry.of_batch(batch, cfg)
-            target = depth_targets(batch.points, cams)                    # (1, N, h, w), -1: none
+            target = nearest_depth_bins(batch.points, cams)                    # (1, N, h, w), -1: none
             predicted = model(batch).depth.argmax(dim=2)                  # (1, N, h, w)
             seen = target >= 0
             depth.append(centres[target[seen]].numpy())

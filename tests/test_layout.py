@@ -6,6 +6,8 @@
   that run as a module loads (module level and class bodies, not under ``if TYPE_CHECKING:``)
   has no cycle, and drawing the imports inside functions as well closes none either. A
   function-level import lets both modules of a circle load, but they still depend on each other.
+- The detector's modules never reach clfbev.supervision: the model does not depend on how it is
+  trained.
 
 The sources are parsed, not imported: the test needs no optional dependency and runs in a second.
 """
@@ -155,6 +157,32 @@ def test_no_circle_hidden_in_a_function_either(package):
     """Moving one import of a circle into a function lets both modules load, but the two still
     depend on each other (the entry point and the training loop did, once)."""
     assert function_level_cycles(package) == []
+
+
+# The detector's modules: what builds and runs CLFusionBEV. The training supervision builds on
+# them, never the reverse (the camera geometry, the depth bins and the direction coding they
+# share live in clfbev.geometry).
+MODEL_MODULES = ("clfbev.model", "clfbev.camera_encoder", "clfbev.lidar_encoder", "clfbev.fusion", "clfbev.attention",
+                 "clfbev.head", "clfbev.camera_aux", "clfbev.bilinear_lift", "clfbev.geometry")
+
+
+def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+    """The modules ``start`` imports, directly or through others."""
+    seen, todo = set(), [start]
+    while todo:
+        for w in graph[todo.pop()] - seen:
+            seen.add(w)
+            todo.append(w)
+    return seen
+
+
+def test_the_model_never_imports_the_training_supervision():
+    graph = import_graph("clfbev", at_import_only=False)
+    offenders = {m: sorted(w for w in reachable(graph, m) if w.startswith("clfbev.supervision"))
+                 for m in MODEL_MODULES}
+    assert all(m in graph for m in MODEL_MODULES)
+    assert not any(offenders.values()), offenders
+    assert "clfbev.geometry" in reachable(graph, "clfbev.supervision.targets")
 
 
 def test_the_checks_see_a_planted_circle_and_a_crossing(tmp_path):

@@ -16,7 +16,7 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
-from clfbev.head import DIR_OFFSET, direction_target
+from clfbev.geometry import DIR_OFFSET, direction_target
 from clfbev.ops.boxes import encode_boxes, limit_period
 from clfbev.supervision.anchor_pairs import AnchorGrid, Pairs, anchor_grid, candidate_pairs, exact_ious
 

@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from clfbev.camera_encoder import CameraGeometry
+from clfbev.geometry import CameraGeometry
 
 # nuScenes-lidarseg's classes (index 0 = noise / void, 31 = vehicle.ego): what dense/*_seg.png holds.
 LIDARSEG_CLASSES = 32

@@ -9,7 +9,7 @@ depth of every pixel it hits, so:
    so that a target cell is exactly the feature cell whose frustum the point lies in;
 2. per feature cell (stride s: cell (i, j) covers augmented pixels [j s, (j + 1) s) x
    [i s, (i + 1) s)) keep the NEAREST depth (the surface the cell sees, not what is behind it),
-   as the bin of :mod:`clfbev.camera_encoder` (``floor((z - d_min) / step)``, camera z);
+   as the bin of :mod:`clfbev.geometry` (``floor((z - d_min) / step)``, camera z);
 3. a binary cross-entropy between the predicted depth distribution and the one-hot bin,
    summed over bins and averaged over the cells that have a target (cells without a point,
    and depths outside the bins, are ignored).
@@ -24,78 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from clfbev.camera_encoder import CameraGeometry, depth_bin_centres
-
-
-def nearest_lidar_points(
-    points: list[Tensor], cams: CameraGeometry, ignore: list[Tensor | None] | None = None
-) -> tuple[Tensor, Tensor]:
-    """The nearest key-frame lidar point of every camera feature cell (steps 1 and 2 above).
-
-    Parameters
-    ----------
-    points : B tensors (n_i, >= 5) x, y, z, intensity, time lag; key-frame lidar frame.
-    cams : the B x N cameras (``img_aug`` required); feature map (H / s, W / s) of
-        ``cams.image_size`` at ``cams.feature_stride``; points outside ``cams.depth_bins`` are
-        left out.
-    ignore : optional B masks (n_i,) of points to leave out (pasted objects), or None entries.
-
-    Returns
-    -------
-    depth : (B, N, H / s, W / s) float64 camera z of the nearest point, inf where none.
-    index : (B, N, H / s, W / s) int64 row of that point in ``points[b]``, -1 where none (of
-        equally near points, the last row).
-    """
-    B, N = cams.intrinsics.shape[:2]
-    H, W = cams.image_size
-    feature_stride = cams.feature_stride
-    h, w = H // feature_stride, W // feature_stride
-    d_min, d_max, d_step = (float(v) for v in cams.depth_bins)
-    z_max = d_min + int(round((d_max - d_min) / d_step)) * d_step
-    device = cams.intrinsics.device
-    # P = A K [R | t]_cam_from_lidar, per camera; float64 keeps pixels exact far from the centre.
-    T_cam_from_lidar = torch.linalg.inv(cams.T_lidar_from_cam.double())
-    P = cams.img_aug.double() @ cams.intrinsics.double() @ T_cam_from_lidar[..., :3, :]  # (B, N, 3, 4)
-    depth = torch.full((B, N * h * w), float("inf"), dtype=torch.float64, device=device)
-    index = torch.full((B, N * h * w), -1, dtype=torch.long, device=device)
-    for b in range(B):                      # a loop over the batch; each sample is vectorised
-        keep = points[b][:, 4] == 0
-        if ignore is not None and ignore[b] is not None:
-            keep &= ~ignore[b]
-        kept = torch.nonzero(keep).squeeze(1)                           # (n,) rows of points[b]
-        xyz1 = F.pad(points[b][kept, :3].double(), (0, 1), value=1.0)   # (n, 4)
-        uvz = torch.einsum("nij,pj->npi", P[b], xyz1)                   # (N, n, 3)
-        z = uvz[..., 2]
-        u, v = uvz[..., 0] / z, uvz[..., 1] / z
-        cols, rows = torch.floor(u / feature_stride).long(), torch.floor(v / feature_stride).long()
-        ok = (z > d_min) & (z < z_max) & (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
-        cam = torch.arange(N, device=device)[:, None].expand_as(z)
-        cell, z_ok = ((cam * h + rows) * w + cols)[ok], z[ok]
-        depth[b].scatter_reduce_(0, cell, z_ok, reduce="amin")
-        # The row of the nearest point: a max over the points at the cell's minimum (deterministic).
-        nearest = z_ok == depth[b][cell]
-        point_row = kept[None, :].expand_as(z)[ok]
-        index[b].scatter_reduce_(0, cell[nearest], point_row[nearest], reduce="amax")
-    return depth.view(B, N, h, w), index.view(B, N, h, w)
-
-
-def depth_targets(points: list[Tensor], cams: CameraGeometry, ignore: list[Tensor | None] | None = None) -> Tensor:
-    """Nearest-lidar depth bin of every camera feature cell; the parameters are those of
-    :func:`nearest_lidar_points`.
-
-    Returns
-    -------
-    (B, N, H / s, W / s) int64 bin index, -1 where the cell has no target.
-    """
-    depth, _ = nearest_lidar_points(points, cams, ignore)
-    return bins_of(depth, cams.depth_bins)
-
-
-def bins_of(depth: Tensor, depth_bins: tuple[float, float, float]) -> Tensor:
-    """Depth bin of camera z (any shape, inf = none) -> int64, -1 where inf."""
-    d_min, _, d_step = (float(v) for v in depth_bins)
-    bins = torch.floor((depth - d_min) / d_step)
-    return torch.where(torch.isfinite(depth), bins, -1.0).long()
+from clfbev.geometry import depth_bin_centres
 
 
 def depth_loss(depth_probs: Tensor, targets: Tensor, depth_bins: tuple[float, float, float] | None = None,

@@ -23,7 +23,6 @@ The loss is CenterNet's penalty-reduced focal loss (alpha 2, beta 4) over the nu
 
 from __future__ import annotations
 
-import math
 
 import torch
 from torch import Tensor
@@ -33,8 +32,6 @@ from clfbev.supervision.dense import centre_focal_loss
 # CenterPoint's nuScenes settings of the target (its ``gaussian_overlap`` and ``min_radius``).
 MIN_OVERLAP = 0.1
 MIN_RADIUS = 2
-# The aux head's initial centre probability (CenterPoint's heatmap bias of -2.19).
-HEATMAP_PRIOR = 0.1
 
 
 def gaussian_radius(length: Tensor, width: Tensor, min_overlap: float = MIN_OVERLAP) -> Tensor:
@@ -119,8 +116,3 @@ def heatmap_loss(logits: Tensor, heatmap: Tensor) -> Tensor:
     """CenterNet's penalty-reduced focal loss (alpha 2, beta 4) of the aux head's ``logits``
     (B, n_classes, ny, nx) against ``heatmap`` of :func:`bev_heatmap`, over its centres: 0-d."""
     return centre_focal_loss(logits, heatmap)
-
-
-def heatmap_prior_bias() -> float:
-    """The logit of :data:`HEATMAP_PRIOR`: the aux head's initial bias."""
-    return -math.log((1 - HEATMAP_PRIOR) / HEATMAP_PRIOR)

@@ -67,7 +67,7 @@ def cell_classes(
     Parameters
     ----------
     nearest : (B, N, h, w) int64 row of each cell's nearest point in ``points[b]``, -1 where
-        none (:func:`clfbev.supervision.depth.nearest_lidar_points`, which the depth target uses too).
+        none (:func:`clfbev.geometry.nearest_lidar_points`, which the depth target uses too).
     points : B tensors (n_i, >= 3), lidar frame.
     gt_boxes : B (M_i, >= 7) boxes, lidar frame.  gt_labels : B (M_i,) class indices.
     n_classes : C.

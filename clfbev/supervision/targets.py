@@ -21,13 +21,13 @@ import torch
 from torch import Tensor
 
 from clfbev.anchors import make_anchors, match_thresholds
-from clfbev.camera_encoder import CameraGeometry
 from clfbev.config import ModelConfig
 from clfbev.data import Batch, Sample, collate
+from clfbev.geometry import CameraGeometry, bins_of, nearest_lidar_points
 from clfbev.outputs import ModelOutputs
 from clfbev.supervision.assign import AnchorTargets, assign_targets, stack_targets
 from clfbev.supervision.camera_bev import add_camera_bev_losses, camera_bev_targets, wants_bev_targets
-from clfbev.supervision.depth import bins_of, depth_loss, nearest_lidar_points
+from clfbev.supervision.depth import depth_loss
 from clfbev.supervision.distill import load_teacher
 from clfbev.supervision.losses import detection_loss
 from clfbev.supervision.perspective import cell_classes, semantic_loss

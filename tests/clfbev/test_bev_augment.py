@@ -18,8 +18,9 @@ import pytest
 import torch
 
 from clfbev.augment import AugmentConfig, global_matrix, global_transform, random_augment
-from clfbev.camera_encoder import CameraEncoder, CameraGeometry, compress_z, lift_geometry, splat
+from clfbev.camera_encoder import CameraEncoder, compress_z, lift_geometry, splat
 from clfbev.data import Sample
+from clfbev.geometry import CameraGeometry
 
 H, W, STRIDE = 64, 128, 8
 h, w = H // STRIDE, W // STRIDE

@@ -11,9 +11,10 @@ import torch
 import torch.nn.functional as F
 
 from clfbev.bilinear_lift import bilinear_lift, column_points
-from clfbev.camera_encoder import CameraEncoder, CameraGeometry
+from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import tiny
 from clfbev.errors import ConfigError
+from clfbev.geometry import CameraGeometry
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from clfbev.camera_encoder import CameraEncoder, CameraGeometry, compress_z, depth_bin_centres, lift_geometry, splat
+from clfbev.camera_encoder import CameraEncoder, compress_z, lift_geometry, splat
+from clfbev.geometry import CameraGeometry, depth_bin_centres
 from clfbev.resnet import FPN, ResNet
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -9,12 +9,13 @@ import pytest
 import torch
 
 from clfbev.augment import image_matrix
-from clfbev.camera_encoder import CameraEncoder, CameraGeometry, lift_geometry, oracle_depth, splat
+from clfbev.camera_encoder import CameraEncoder, lift_geometry, oracle_depth, splat
 from clfbev.config import tiny
 from clfbev.data import NuScenesDetection, collate, resize_and_crop
 from clfbev.errors import ConfigError
+from clfbev.geometry import CameraGeometry, nearest_depth_bins
 from clfbev.model import CLFusionBEV
-from clfbev.supervision.depth import depth_loss, depth_targets
+from clfbev.supervision.depth import depth_loss
 from clfbev.supervision.targets import build_targets
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -64,7 +65,7 @@ def test_a_point_lands_in_its_bin_and_feature_cell_through_resize_crop_and_flip(
     pasted = torch.tensor([[15.225, -0.75, 0.375, 0.5, 0.0]], dtype=torch.float64)  # same ray, pasted
     points = torch.cat([behind, p, older, pasted])
     cams = CameraGeometry(K_1600[None, None], front_camera()[None, None], img_aug, (H, W), s, BINS)
-    t = depth_targets([points], cams, ignore=[torch.tensor([False, False, False, True])])
+    t = nearest_depth_bins([points], cams, ignore=[torch.tensor([False, False, False, True])])
     assert t.shape == (1, 1, H // s, W // s)
     assert t[0, 0, row, col] == math.floor((20.3 - 1.0) / 1.0)      # the nearest kept point wins
     assert (t >= 0).sum() == 1
@@ -76,7 +77,7 @@ def test_the_oracle_lift_puts_a_cells_context_on_its_lidar_point():
     cams = CameraGeometry(K_1600[None, None], front_camera()[None, None], torch.from_numpy(A)[None, None],
                           (H, W), s, BINS)
     point = torch.tensor([[20.3, -1.0, 0.5, 0.5, 0.0]], dtype=torch.float64)
-    bins = depth_targets([point], cams)                                # (1, 1, h, w), one known cell
+    bins = nearest_depth_bins([point], cams)                                # (1, 1, h, w), one known cell
     row, col = (int(i) for i in torch.nonzero(bins[0, 0] >= 0)[0])
     torch.manual_seed(0)
     D = 51

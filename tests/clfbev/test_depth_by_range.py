@@ -8,10 +8,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from clfbev.camera_encoder import CameraGeometry
 from clfbev.config_file import load_config
 from clfbev.data import NuScenesDetection
-from clfbev.supervision.depth import depth_targets
+from clfbev.geometry import CameraGeometry, nearest_depth_bins
 from conftest import script_module
 
 dr = script_module("depth_by_range")
@@ -27,7 +26,7 @@ class TargetDepth:
     def __call__(self, batch):
         cfg = self.cfg
         cams = CameraGeometry.of_batch(batch, cfg)
-        target = depth_targets(batch.points, cams)                            # (1, N, h, w)
+        target = nearest_depth_bins(batch.points, cams)                            # (1, N, h, w)
         D = cfg.num_depth_bins
         moved = (target + self.shift).clamp(max=D - 1)
         probs = torch.where((target >= 0)[..., None], F.one_hot(moved.clamp(min=0), D).float(), 1.0 / D)

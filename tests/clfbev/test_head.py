@@ -12,9 +12,10 @@ import torch
 from clfbev.anchors import MATCH_THRESHOLDS, anchor_class_ids, make_anchors, match_thresholds
 from clfbev.config import ModelConfig
 from clfbev.errors import ConfigError
+from clfbev.geometry import direction_target
+from clfbev.head import AnchorHead, FlatPredictions, HeadOutput, decode, heading_from_motion
 from clfbev.settings import ANCHOR_SIZES, DETECTION_CLASSES, LossWeights
 from clfbev.supervision.assign import AnchorTargets, assign_targets, stack_targets
-from clfbev.head import AnchorHead, FlatPredictions, HeadOutput, decode, direction_target, heading_from_motion
 from clfbev.supervision.losses import (
     detection_loss, direction_cross_entropy, sigmoid_focal_loss, sin_difference, smooth_l1,
 )

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from clfbev.camera_encoder import CameraEncoder, CameraGeometry
+from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import tiny
 from clfbev.data import NuScenesDetection, collate, resize_and_crop
 from clfbev.errors import ConfigError
+from clfbev.geometry import CameraGeometry, nearest_lidar_points
 from clfbev.model import CLFusionBEV
-from clfbev.supervision.depth import nearest_lidar_points
 from clfbev.supervision.losses import sigmoid_focal_loss
 from clfbev.supervision.perspective import cell_classes, point_classes, semantic_loss
 from clfbev.supervision.targets import batch_loss

@@ -18,14 +18,14 @@ import numpy as np
 import pytest
 import torch
 
-from clfbev.camera_encoder import CameraGeometry
 from clfbev.config_file import load_config
 from clfbev.errors import CheckpointError
+from clfbev.geometry import CameraGeometry
 from clfbev.model import CLFusionBEV
 from clfbev.run.image_init import load_image_init
 from clfbev.run.train import start_state
 from clfbev.run.train_config import TrainConfig
-from clfbev.supervision.dense import centre_targets, cell_depth_and_class
+from clfbev.supervision.dense import cell_depth_and_class, centre_targets
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
