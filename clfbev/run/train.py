@@ -56,10 +56,6 @@ from clfbev.run.torchvision_init import TORCHVISION
 from clfbev.run.train_config import TrainConfig, check_resumable
 from clfbev.supervision.targets import Targets, TrainingCollate, training_loss
 
-LOSS_KEYS = ("loss", "loss_cls", "loss_reg", "loss_vel", "loss_moving", "loss_dir", "loss_depth", "loss_heatmap",
-             "loss_distill")
-
-
 def lr_at(step: int, total: int, tc: TrainConfig) -> float:
     """Learning rate of optimizer step ``step`` (0-based) of ``total``: linear warmup from
     ``lr / 10`` to ``lr`` over ``warmup_frac`` of the steps, then cosine to ``lr * min_lr_ratio``."""
@@ -348,7 +344,8 @@ def optimizer_step(loop: Loop, state: TrainState, batch: Batch, targets: Targets
 def record_step(loop: Loop, state: TrainState, losses: dict[str, Tensor], grad_norm: Tensor, lr: float,
                 rate: float) -> None:
     """Rank 0 after a step: its scalars to the logs and the progress bar; last.pt when due."""
-    loop.log.log(state.step, state.epoch, {**{f"train/{k}": float(losses[k].detach()) for k in LOSS_KEYS if k in losses},
+    # Every term the loss returns is logged: what it computes is what the metrics show.
+    loop.log.log(state.step, state.epoch, {**{f"train/{k}": float(v.detach()) for k, v in losses.items()},
                                            "train/lr": lr, "train/grad_norm": float(grad_norm),
                                            "train/samples_per_s": rate})
     loop.bar.set_postfix(epoch=state.epoch, loss=f"{state.loss:.3f}", samples_s=f"{rate:.2f}")

@@ -178,6 +178,8 @@ def test_train_eval_predict_show(tiny_dataset, micro, tmp_path):
     train_rows = [r for r in rows if "train/loss" in r]
     assert [r["step"] for r in train_rows] == [1, 2, 3]
     assert all(math.isfinite(r["train/loss"]) and r["train/samples_per_s"] > 0 for r in train_rows)
+    # every term the loss computes is logged, the angle's residual and the perspective head's too
+    assert {"train/loss_reg_theta", "train/loss_depth", "train/loss_dir", "train/loss_cls"} <= set(train_rows[0])
     assert any("val/NDS" in r for r in rows)
     ckpt = load_checkpoint(run / "last.pt")
     assert ckpt["step"] == 3 and ckpt["variant"] == "full"
