@@ -45,8 +45,7 @@ class ModelConfig:
     ``sweep_trail`` (each cell's least-squares velocity of its points above ``sweep_trail_min_z``,
     m in the lidar frame, over the cell and its 3x3 neighbourhood joins them too,
     :func:`clfbev.sweep_bev.sweep_trails`), ``sweep_trail_in_bev`` (False: only the velocity
-    tower reads the trails, not the backbone: mAP +1.3 / +1.7 points, NDS -1.1 / -1.1 with the
-    heading worse, two seeds; docs/benchmarks.md, "Motion, seventh round").
+    tower reads the trails, not the backbone).
     Camera: ``cam_backbone`` (``resnet``, or ``efficientnet_lite0`` for the ImageNet experiment,
     :mod:`clfbev.efficientnet_lite`), ``cam_depth`` / ``cam_width`` (ResNet), ``fpn_ch``,
     ``context_ch``, ``depth_bins`` (d_min, d_max, d_step of camera z), ``feature_stride`` (8 or 16), ``cam_z_slabs``,
@@ -344,46 +343,28 @@ def _plain(x):
 
 
 def tiny() -> ModelConfig:
-    """For a 2-core CPU: +-51.2 m, 0.4 m voxels -> 256 x 256 x 20 grid; the second sparse
-    downsampling halves z only, so the BEV is 128 x 128 (0.8 m cells, 64 channels), the grid
-    on which anchor heads are known to work (SECOND / OpenPCDet use 0.8 m or finer; at 1.6 m a
-    pedestrian or a cone often had no anchor to match). ResNet-18 width 16 on 192 x 352 images (704 x 396 resized
-    keeping the aspect, then cropped) at stride 8; 51 depth bins of 1 m from 1 m (6 m bins
-    left rings of BEV cells that no camera feature reached); 8 x 8 window attention (exact
-    attention over 16,384 cells would be the slowest part by far). 10 lidar sweeps (0.45 s,
-    as the nuScenes peers): with 3 (0.1 s) a car at 8 m/s moves 0.8 m between the oldest and
-    the newest sweep, one BEV cell (the benchmark's models predict no velocity with 3 sweeps or
-    with 10, docs/benchmarks.md); the point counts of 5 lag bands (two sweeps each) per BEV
-    cell join the lidar BEV, where the backbone can compare the old and the new sweeps' places
-    (:mod:`clfbev.sweep_bev`). The direction loss weighs 1.0, not SECOND's 0.2: the box
-    regression's sin-difference is blind to a half turn, so the shared features learn front from
-    back only as far as the direction loss pulls them, and within the tiny budget 0.2 hardly pulls
-    (car AOE 0.45-0.59 with 14-18% of parked cars flipped, against 0.15-0.20 and 3% at 1.0, two
-    seeds each; docs/benchmarks.md, "Motion, fourth round"). Each GT trains its 4 nearest anchors
-    of its class at least (``min_positives``, FCOS/ATSS centre sampling): with SECOND's matching
-    alone a cone, a barrier or a cycle trains its one forced anchor (mAP 0.216 / 0.200 -> 0.246 /
-    0.261, NDS 0.307 / 0.320 -> 0.319 / 0.354, two seeds; "Motion, fifth round"). The velocity
-    is CenterPoint's separate regression, gated: a detached tower of width 16 on the BEV and the
-    sweep bands (with each band's mean offset in its cell) classifies each box as moving or still
-    and regresses its speed, the moving and the still positives balanced, Smooth-L1 with beta
-    0.1 m/s; the still majority can no longer pull every speed to 0 (three seeds against the
-    shared residuals: NDS 0.309 / 0.342 / 0.348 against 0.326 / 0.312 / 0.304, mAVE 0.711 against
-    0.859 on the mean, car AVE 0.42-0.55 against 0.76-1.04 on every seed, at 1.10x the step;
-    docs/benchmarks.md, "Fusion in two stages; the velocity gate's seeds"). Each cell's fitted
-    trail joins the bands (``sweep_trail``: the least-squares velocity of the points above the
-    road, over the cell and its 3x3 neighbourhood, :func:`clfbev.sweep_bev.sweep_trails`): the
-    tower's input then holds a walker's velocity, which no layer learned to read from the bands
-    at this budget, and the gate calls a box moving above 0.5 m/s, a walker's pace; a walker's
-    heading is its predicted velocity's direction where that is faster than 0.5 m/s
-    (``heading_follow_classes``), other classes' yaw turns by pi where it points against it
-    (three seeds: NDS 0.363 / 0.361 / 0.365 against 0.309 / 0.342 / 0.348, mAVE 0.483 / 0.509 /
-    0.453 against 0.845 / 0.657 / 0.632, mAP 0.241 / 0.244 / 0.231 against 0.248 / 0.261 / 0.275,
-    at 1.02x the step; docs/benchmarks.md, "Motion, sixth round: each cell's trail"). The
-    camera's depth loss weighs each cell by its target depth squared (``loss.depth_range_power``
-    2; BEVDepth's plain mean lets the near road decide the depth head): `camera` car AP 0.050 /
-    0.051 against 0.034 / 0.029, depth within a bin beyond 35 m 0.28 / 0.26 against 0.15 / 0.16,
-    two seeds; docs/benchmarks.md, "The camera: input and stride, a pretraining curve, far
-    depth")."""
+    """For a 2-core CPU (the measurements behind each choice: docs/benchmarks.md).
+
+    - Grid: +-51.2 m, 0.4 m voxels -> 256 x 256 x 20; the second sparse downsampling halves z
+      only, so the BEV is 128 x 128 (0.8 m cells, 64 channels), the grid on which anchor heads are
+      known to work (SECOND / OpenPCDet use 0.8 m or finer).
+    - Camera: ResNet-18 width 16 on 192 x 352 images (704 x 396 resized keeping the aspect, then
+      cropped) at stride 8; 51 depth bins of 1 m from 1 m; the depth loss weighs each cell by its
+      target depth squared (``loss.depth_range_power`` 2), so the far cells count.
+    - Attention: 8 x 8 windows (exact attention over 16,384 cells would be the slowest part).
+    - Lidar: 10 sweeps (0.45 s, as the nuScenes peers); per BEV cell the point counts of 5 lag
+      bands with their mean offsets and each cell's fitted trail (``sweep_trail``: the
+      least-squares velocity of its points above the road, over the cell and its 3 x 3
+      neighbourhood) join the lidar BEV (:mod:`clfbev.sweep_bev`).
+    - Head: the direction loss at 1.0 (the box regression's sin-difference is blind to a half
+      turn); each GT trains at least its 4 nearest anchors of its class (``min_positives``).
+    - Velocity: CenterPoint's separate regression, gated: a detached tower of width 16 on the BEV
+      and the sweep features classifies each box as moving (above 0.5 m/s) or still and
+      regresses its speed, moving and still positives balanced, Smooth-L1 with beta 0.1 m/s; a
+      walker's heading is its predicted velocity's direction where it walks
+      (``heading_follow_classes``), other boxes' yaw turns by pi where it points against a
+      velocity above 0.5 m/s.
+    """
     return ModelConfig(n_sweeps=10, sweep_bands=5, sweep_offsets=True, loss=LossWeights(dir=1.0, depth_range_power=2.0),
                        min_positives=4,
                        velocity_tower=16, velocity_detach=True, velocity_gate=True, velocity_balance=True,
