@@ -9,7 +9,11 @@ has (:func:`detection_config_for`), and runs ``DetectionEval``.
 
 Attributes: the model has no attribute head. ``attribute_name`` is DERIVED from the predicted
 speed and class (moving/parked, moving/standing, with/without rider), not learned; the AAE it
-gets is therefore a property of the velocity estimate.
+gets is therefore a property of the velocity estimate. The speed thresholds are simgen's (0.3
+m/s, 0.2 for walkers). Speed alone cannot tell a parked vehicle from one stopped in traffic, nor
+a still cycle with its rider from one without: the rule answers the majority of each, which on
+the benchmark's set (40 scenes, seed 1) is parked for 87 % of the slow vehicles (11,338 against
+1,658 stopped) and without a rider for 94 % of the slow cycles (799 against 52).
 """
 
 from __future__ import annotations
