@@ -35,7 +35,7 @@ def clean_sweep():
     cfg = load_preset("urban")
     s = MakeSettings(cfg, 1, 0, 1, "v1.0-sim")
     scanner = LidarScanner(cfg.lidar, build_world(s, 0))
-    return cfg, s, scanner, scanner.scan(0.05, np.random.default_rng(0))
+    return cfg, s, scanner, scanner.scan(0.05, np.random.default_rng(0), missed_rays=True)
 
 
 def weather_points(cfg, s, sw, kind: str, rate: float) -> np.ndarray:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import functools
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import trimesh
@@ -51,10 +51,10 @@ class Sweep:
     label : (n,) uint8 nuScenes-lidarseg class index (:mod:`simgen.lidarseg`).
 
     The k rays that returned nothing (no surface, or one out of range or below the detection
-    threshold), for the weather, whose particles can echo in them: ``miss_origin``, ``miss_dir``
-    (k, 3) each ray's origin and unit direction (sensor frame at t_end), ``miss_ring`` (k,),
-    ``miss_time`` (k,) firing time (s) and ``miss_range`` (k,) the distance (m) to the surface it
-    met, inf for none.
+    threshold), for the weather, whose particles can echo in them (None unless the scan was asked
+    for them: ``scan(..., missed_rays=True)``): ``miss_origin``, ``miss_dir`` (k, 3) each ray's
+    origin and unit direction (sensor frame at t_end), ``miss_ring`` (k,), ``miss_time`` (k,)
+    firing time (s) and ``miss_range`` (k,) the distance (m) to the surface it met, inf for none.
     """
     points_lidar: np.ndarray
     time: np.ndarray
@@ -64,11 +64,11 @@ class Sweep:
     range: np.ndarray
     dir_lidar: np.ndarray
     label: np.ndarray
-    miss_origin: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    miss_dir: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    miss_ring: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    miss_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    miss_range: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    miss_origin: np.ndarray | None = None
+    miss_dir: np.ndarray | None = None
+    miss_ring: np.ndarray | None = None
+    miss_time: np.ndarray | None = None
+    miss_range: np.ndarray | None = None
 
 
 def ray_pattern(cfg: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -340,8 +340,10 @@ class LidarScanner:
         reach = dist[rays] >= (d - r)[owner]
         return rays[reach], owner[reach]
 
-    def scan(self, t_end: float, rng: np.random.Generator) -> Sweep:
-        """Cast one sweep ending at ``t_end`` (s). ``rng`` draws the range noise."""
+    def scan(self, t_end: float, rng: np.random.Generator, missed_rays: bool = False) -> Sweep:
+        """Cast one sweep ending at ``t_end`` (s). ``rng`` draws the range noise. ``missed_rays``:
+        also keep the rays that returned nothing (``Sweep.miss_*``, which only rain and snow read;
+        a clear sweep skips their bookkeeping, 8 % of its time)."""
         cfg = self.cfg
         t_col, origin_col, yaw = self._column_poses(t_end)
         origin, dirs = lidar_kernels.sweep_rays(origin_col, yaw, self.dir_ego, N_BEAMS)
@@ -366,7 +368,8 @@ class LidarScanner:
                              cfg.max_range, cfg.min_return, cfg.intensity_ref_range, N_BEAMS)
 
         sweep = Sweep(*_join(self._map(points, len(dist))))
-        _add_missed_rays(sweep, dist, dirs, self.ring, t_col, origin_lidar, R_lidar_from_global)
+        if missed_rays:
+            _add_missed_rays(sweep, dist, dirs, self.ring, t_col, origin_lidar, R_lidar_from_global)
         return sweep
 
 

@@ -242,7 +242,7 @@ def _add_sweep(scene: SceneContext, sensors: Sensors, records: writer.SceneRecor
     cfg = scene.cfg
     is_key = (j + 1) % SWEEPS_PER_KEYFRAME == 0
     k_sample = min(j // SWEEPS_PER_KEYFRAME, len(scene.sample_tokens) - 1)
-    sweep = sensors.scanner.scan(t_end, sensors.rng_sensor)
+    sweep = sensors.scanner.scan(t_end, sensors.rng_sensor, missed_rays=cfg.weather.particles)
     sd_tok = scene.token("sd", rig.LIDAR, j)
     folder = "samples" if is_key else "sweeps"
     filename = f"{folder}/{rig.LIDAR}/{scene.log_name}__{rig.LIDAR}__{scene.us(t_end)}.pcd.bin"

@@ -50,6 +50,8 @@ def sweep_rays(points: np.ndarray, sweep, min_return: float, fog_alpha: float) -
     whose column RAY_COLUMN holds each row's ray (the index of its clean return). After fog
     ``fog_alpha`` (1/m) a row's echo is the fog's attenuated hard return or the fog's own echo
     (:func:`simgen.degrade.fog_returns` says which); its range is where the row lies on its ray."""
+    if sweep.miss_dir is None:
+        raise ValueError("rain and snow need the sweep's missed rays: LidarScanner.scan(..., missed_rays=True)")
     origin = np.concatenate([sweep.points_lidar[:, :3] - sweep.dir_lidar * sweep.range[:, None], sweep.miss_origin])
     direction = np.concatenate([sweep.dir_lidar, sweep.miss_dir])
     rho_cos = sweep.rho * sweep.cos_inc

@@ -21,7 +21,7 @@ from simgen.weather import rain_lidar, snow_lidar
 def scene():
     cfg = load_preset("tiny")
     s = MakeSettings(cfg, 1, 7, 2, "v1.0-sim")
-    return cfg, s, LidarScanner(cfg.lidar, build_world(s, 0)).scan(0.5, np.random.default_rng(0))
+    return cfg, s, LidarScanner(cfg.lidar, build_world(s, 0)).scan(0.5, np.random.default_rng(0), missed_rays=True)
 
 
 def _rays(cfg, sweep, fog_alpha=0.0):
@@ -255,3 +255,14 @@ def test_the_wet_road_gives_fewer_weaker_ground_returns(scene):
     # Surfaces the film does not cover lose only what 1 mm/h of drops takes (weak, far returns).
     other = ~np.isin(sw.label, rain_lidar.WET_SURFACES)
     assert np.isin(np.flatnonzero(other), ray).mean() > 0.99
+
+
+def test_a_clear_scan_skips_the_missed_rays_and_the_weather_refuses_it(scene):
+    """The missed rays are bookkept only when asked for (rain and snow read them): a clear scan's
+    points are the same bytes without them, and a precipitation refuses a sweep that lacks them."""
+    cfg, s, sw = scene
+    clear = LidarScanner(cfg.lidar, build_world(s, 0)).scan(0.5, np.random.default_rng(0))
+    assert clear.miss_dir is None and sw.miss_dir is not None
+    assert clear.points_lidar.tobytes() == sw.points_lidar.tobytes()
+    with pytest.raises(ValueError, match="missed_rays=True"):
+        LS.sweep_rays(LS.with_ray_column(clear.points_lidar), clear, cfg.lidar.min_return, 0.0)
