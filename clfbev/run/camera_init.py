@@ -23,7 +23,7 @@ from torch import nn
 
 from clfbev.config import ModelConfig
 from clfbev.errors import CheckpointError
-from clfbev.run.checkpoint import check_tensors, config_of, load_checkpoint
+from clfbev.run.checkpoint import check_fields, check_tensors, config_of, load_checkpoint
 from clfbev.run.image_init import CAMERA_FIELDS
 
 # The model config fields that decide what the camera branch computes, beside the encoder's own
@@ -52,18 +52,12 @@ def init_from_camera_run(model: nn.Module, path: str | Path, cfg: ModelConfig) -
     ckpt = load_checkpoint(path)
     if ckpt["variant"] == "lidar":
         raise CheckpointError(f"--camera-init {path}: a run of variant 'lidar' has no camera branch")
-    _check_camera_fields(camera_branch(config_of(ckpt, path)), camera_branch(cfg), path)
+    mine = camera_branch(cfg)
+    check_fields(camera_branch(config_of(ckpt, path)), mine, mine,
+                 f"--camera-init {path}: trained for another camera branch")
     want = {k: v for k, v in model.state_dict().items() if k.split(".")[0] in CAMERA_MODULES}
     take = {k: v for k, v in ckpt["model"].items() if k.split(".")[0] in CAMERA_MODULES}
     check_tensors(take, want,
                   f"--camera-init {path}: the camera branch of the checkpoint's variant '{ckpt['variant']}'")
     model.load_state_dict(take, strict=False)
     return f"camera branch from {path} (step {ckpt['step']}, variant {ckpt['variant']})"
-
-
-def _check_camera_fields(theirs: dict, mine: dict, path: Path) -> None:
-    """Refuse a checkpoint whose camera branch (:func:`camera_branch`) differs from ours."""
-    diff = [k for k in mine if theirs[k] != mine[k]]
-    if diff:
-        differs = ", ".join(f"{k} {theirs[k]} != {mine[k]}" for k in diff)
-        raise CheckpointError(f"--camera-init {path}: trained for another camera branch (differs in: {differs})")

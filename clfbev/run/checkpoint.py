@@ -88,6 +88,15 @@ def _check_fields(ckpt: dict, path: Path) -> None:
             raise CheckpointError(f"checkpoint {path}: field '{key}' is {ckpt[key]!r}, not a count")
 
 
+def check_fields(theirs: dict, mine: dict, keys, what: str) -> None:
+    """Refuse a checkpoint whose config ``theirs`` differs from ``mine`` (plain dicts) in one of
+    ``keys``: a CheckpointError ``{what} (differs in: key theirs != mine, ...)``."""
+    diff = [k for k in keys if theirs[k] != mine[k]]
+    if diff:
+        differs = ", ".join(f"{k} {theirs[k]} != {mine[k]}" for k in diff)
+        raise CheckpointError(f"{what} (differs in: {differs})")
+
+
 def check_tensors(weights: dict, want: dict, what: str) -> None:
     """Refuse ``weights`` ({name: tensor}) unless it holds exactly the names of the state dict
     ``want`` with their shapes: a CheckpointError that starts with ``what`` (the file, in words)

@@ -23,8 +23,7 @@ from pathlib import Path
 from torch import nn
 
 from clfbev.config import ModelConfig
-from clfbev.errors import CheckpointError
-from clfbev.run.checkpoint import check_tensors, config_of, load_checkpoint
+from clfbev.run.checkpoint import check_fields, check_tensors, config_of, load_checkpoint
 
 # The model config fields that decide what the lidar path and the head compute; a checkpoint
 # that differs in one of them holds weights for another detector, whatever their shapes.
@@ -44,19 +43,12 @@ def init_from_lidar_run(model: nn.Module, path: str | Path, cfg: ModelConfig) ->
     encoder, built from ``cfg``). Returns what was loaded, in words, for the log."""
     path = Path(path)
     ckpt = load_checkpoint(path)
-    _check_lidar_fields(config_of(ckpt, path).to_dict(), cfg.to_dict(), path)
+    check_fields(config_of(ckpt, path).to_dict(), cfg.to_dict(), LIDAR_FIELDS,
+                 f"--lidar-init {path}: trained for another lidar detector")
     take, seeded = _lidar_tensors(ckpt, model.state_dict(), path)
     model.load_state_dict(take, strict=False)
     kept = f"; seeded: {', '.join(seeded)}" if seeded else ""
     return f"lidar encoder, backbone and head from {path} (step {ckpt['step']}, variant {ckpt['variant']}){kept}"
-
-
-def _check_lidar_fields(theirs: dict, mine: dict, path: Path) -> None:
-    """Refuse a checkpoint whose config differs from ours in a field of LIDAR_FIELDS."""
-    diff = [k for k in LIDAR_FIELDS if theirs[k] != mine[k]]
-    if diff:
-        differs = ", ".join(f"{k} {theirs[k]} != {mine[k]}" for k in diff)
-        raise CheckpointError(f"--lidar-init {path}: trained for another lidar detector (differs in: {differs})")
 
 
 def _lidar_tensors(ckpt: dict, want: dict, path: Path) -> tuple[dict, list[str]]:
