@@ -30,7 +30,7 @@ from . import geometry, sun as sunlight
 from .config import CameraConfig
 from .face_meshes import STATIC_TILE, bounding_spheres, coded_mesh, depth_mesh, static_tiles
 from .gl_readback import (framebuffers_on_osmesa, read_single_sample_framebuffer, read_window_depth,
-                          single_sample_framebuffers)
+                          share_egl_display, single_sample_framebuffers)
 from .rig import Camera
 from .world import World
 
@@ -79,6 +79,7 @@ class Renderer:
         self._drawn: list = []
         gl_renderer._sorted_mesh_nodes = lambda scene: self._drawn
         framebuffers_on_osmesa(self._gl)      # OSMesa renders and reads back as EGL does
+        share_egl_display(self._gl)           # closing one renderer leaves the others working
         self._readers = {d: types.MethodType(functools.partial(read_single_sample_framebuffer, with_depth=d),
                                              gl_renderer) for d in (False, True)}
         self._readers["window"] = types.MethodType(read_window_depth, gl_renderer)

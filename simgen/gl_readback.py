@@ -2,12 +2,17 @@
 directly, on EGL and on OSMesa alike.
 
 pyrender has no option for any of these, so :class:`simgen.camera.Renderer` patches its module
-function and its platform instance and stands these readers in for its instance's
+function and its platform instance (its framebuffers and its EGL display's lifetime) and stands these readers in for its instance's
 ``_read_main_framebuffer``.
 """
 from __future__ import annotations
 
+import collections
+import ctypes
+
 import numpy as np
+
+_EGL_DISPLAY_USERS: collections.Counter = collections.Counter()
 
 
 def single_sample_framebuffers(renderer_module) -> None:
@@ -45,6 +50,38 @@ def framebuffers_on_osmesa(offscreen) -> None:
     platform = offscreen._platform
     if not platform.supports_framebuffers():
         platform.supports_framebuffers = lambda: True
+
+
+def share_egl_display(offscreen) -> None:
+    """Let several ``OffscreenRenderer``\ s live in one process on EGL.
+
+    EGL hands every renderer of a device the same display, and pyrender's ``delete_context``
+    terminates it, which invalidates every other renderer's context: the next one to make its
+    context current fails with EGL_BAD_DISPLAY (a renderer closed, or collected, while another
+    lives). Here the display is terminated only when its last renderer goes. ``offscreen``: a
+    ``pyrender.OffscreenRenderer``; other platforms are left as they are.
+    """
+    platform = offscreen._platform
+    display = getattr(platform, "_egl_display", None)
+    if display is None:
+        return
+    key = ctypes.cast(display, ctypes.c_void_p).value
+    _EGL_DISPLAY_USERS[key] += 1
+
+    def delete_context():
+        from OpenGL.EGL import eglDestroyContext, eglTerminate
+        if platform._egl_display is None:
+            return
+        if platform._egl_context is not None:
+            eglDestroyContext(platform._egl_display, platform._egl_context)
+            platform._egl_context = None
+        _EGL_DISPLAY_USERS[key] -= 1
+        if _EGL_DISPLAY_USERS[key] == 0:
+            del _EGL_DISPLAY_USERS[key]
+            eglTerminate(platform._egl_display)
+        platform._egl_display = None
+
+    platform.delete_context = delete_context
 
 
 def read_single_sample_framebuffer(renderer, scene, flags, with_depth: bool = True):

@@ -71,7 +71,14 @@ for shadows in (True, False):
 np.savez(out, **images)
 from OpenGL.GL import GL_RENDERER, glGetString
 r._gl._platform.make_current()
-print(json.dumps({"platform": type(r._gl._platform).__name__,
+# Renderers beside it, one closed and one collected, leave it working (EGL shares one display).
+others = [Renderer(cfg, platform) for _ in range(2)]
+others.pop().close()
+del others
+import gc; gc.collect()
+r.cfg = cfg
+again = r.render(cam, T_global_from_cam, {ACTOR_ID: T_global_from_box}, lazy_ids=True)[0]
+print(json.dumps({"platform": type(r._gl._platform).__name__, "same_after_others": bool((again == images["rgb_True"]).all()),
                   "patched": "supports_framebuffers" in vars(r._gl._platform),
                   "gl_renderer": glGetString(GL_RENDERER).decode()}))
 r.close()
@@ -108,10 +115,18 @@ def _same_rasteriser(renders) -> None:
 
 
 def test_each_platform_is_the_one_asked_for(renders):
-    """The OSMesa process really ran on OSMesa, and only its platform object was patched (the
-    EGL path is left exactly as it was)."""
+    """The OSMesa process really ran on OSMesa, and only its platform object was told it has
+    framebuffers (EGL's are used as they are)."""
     assert renders["egl"][0]["platform"] == "EGLPlatform" and renders["egl"][0]["patched"] is False
     assert renders["osmesa"][0]["platform"] == "OSMesaPlatform" and renders["osmesa"][0]["patched"] is True
+
+
+@pytest.mark.parametrize("platform", ["egl", "osmesa"])
+def test_a_renderer_outlives_others_closed_or_collected(renders, platform):
+    """Two more renderers made beside one, one closed and one garbage-collected: the first still
+    renders, the same bytes as before, and closes (on EGL pyrender's close terminated the shared
+    display under it: EGL_BAD_DISPLAY)."""
+    assert renders[platform][0]["same_after_others"] is True
 
 
 def test_one_render_gives_the_same_bytes_on_osmesa_and_egl(renders):
