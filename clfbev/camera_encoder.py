@@ -318,6 +318,7 @@ class CameraEncoder(nn.Module):
         img_aug: Tensor | None = None,
         oracle_bins: Tensor | None = None,
         fpn: Tensor | None = None,
+        missing: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         """Camera BEV, the depth distribution it was lifted with (for the depth loss) and the
         class logits of the image features (for the perspective loss).
@@ -334,6 +335,8 @@ class CameraEncoder(nn.Module):
         fpn : (B, N, fpn_ch, h, w) the frozen ResNet's and FPN's features of ``images``, cached
             (:mod:`clfbev.feature_cache`), read in place of running them; ``images`` is then
             unused. Only with the image features frozen: trained ones would leave a cache stale.
+        missing : (B, N) bool the cameras that delivered nothing, or None: nothing is lifted from
+            them (their context features are zeroed before the lift).
 
         Returns
         -------
@@ -349,6 +352,8 @@ class CameraEncoder(nn.Module):
             depth, context, semantics = self.heads(fpn)
         if self.semantic_lift:
             context = torch.cat([context, semantics.sigmoid()], dim=2)           # (B, N, C + n_cls, h, w)
+        if missing is not None:
+            context = context * ~missing[:, :, None, None, None]
         cams = CameraGeometry(intrinsics, T_lidar_from_cam, img_aug, self.image_size, self.feature_stride,
                               self.depth_bins)
         if self.lift == "bilinear":

@@ -17,8 +17,9 @@ density           0-1       drop exactly round(n * severity) of the n loaded poi
                             levels 1-3: 0.2, 0.4, 0.6)
 fov               1-360     keep only the points within +-severity/2 deg of the ego's forward axis
 lidar_missing     (none)    no points at all
-camera_crash      1-6       that many cameras deliver nothing (the network input is all zeros)
-frame_lost        0-1       each camera image is lost (zeros) with that probability
+camera_crash      1-6       that many cameras deliver nothing: their images are zeros and the
+                            sample marks them missing (the model lifts nothing from them)
+frame_lost        0-1       each camera image is lost with that probability (as camera_crash)
 extrinsic_noise   0-10      T_lidar_from_cam perturbed: rotation noise sigma = severity deg per
                             axis, translation noise sigma = 0.02 * severity m per axis
 motion_blur       1-100     each camera image blurred by a line of that many pixels of the
@@ -36,8 +37,12 @@ late:SENSOR       1-20      that sensor's data stream is that many frames behind
                             the scene stands in where there is no older one)
 ================  ========  ===================================================================
 
-Zeros are the "sensor missing" input that BEVFusion's robustness study feeds (Liang et al.,
-"BEVFusion: A Simple and Robust LiDAR-Camera Fusion Framework", NeurIPS 2022).
+A missing camera's images are zeros, the "sensor missing" input of BEVFusion's robustness study
+(Liang et al., "BEVFusion: A Simple and Robust LiDAR-Camera Fusion Framework", NeurIPS 2022),
+and the sample marks it missing (``Sample.camera_missing``), as a vehicle's software knows which
+camera delivered no frame: the model lifts nothing from it, and with every camera missing its
+camera BEV is exactly the all-zero one that modality dropout trains it on. Without the mark a
+frozen encoder would turn the zeros into features no training sample ever had.
 
 ``misalign`` and ``late`` act on every sample (a calibration error or a stale buffer persists),
 where MultiCorrupt applies them to a random 20 / 40 / 60 % of the samples. ``late`` delivers old
@@ -169,18 +174,20 @@ def corrupt_points(points: np.ndarray, rings: np.ndarray, forward_lidar: np.ndar
 
 def corrupt_cameras(images: np.ndarray, T_lidar_from_cam: np.ndarray, intrinsics: np.ndarray, img_aug: np.ndarray,
                     up_lidar: np.ndarray, corruptions, token: str):
-    """images (N, 3, H, W) network input, T_lidar_from_cam (N, 4, 4) -> corrupted copies.
+    """images (N, 3, H, W) network input, T_lidar_from_cam (N, 4, 4) -> corrupted copies and
+    missing (N,) bool, the cameras that delivered nothing (``camera_crash``, ``frame_lost``).
 
     intrinsics : (N, 3, 3) K of the original images; img_aug : (N, 3, 3) original -> network
     pixels; up_lidar : (3,) the ego's up axis in the lidar frame (``motion_blur``'s horizon)."""
     images, T = images.copy(), T_lidar_from_cam.copy()
     n = len(images)
+    missing = np.zeros(n, bool)
     for c in corruptions:
         rng = c.rng(token)
         if c.name == "camera_crash":
-            images[rng.choice(n, size=min(n, int(c.severity)), replace=False)] = 0.0
+            missing[rng.choice(n, size=min(n, int(c.severity)), replace=False)] = True
         elif c.name == "frame_lost":
-            images[rng.random(n) < c.severity] = 0.0
+            missing[rng.random(n) < c.severity] = True
         elif c.name == "extrinsic_noise":
             rot = Rotation.from_euler("xyz", rng.normal(0.0, c.severity, (n, 3)), degrees=True).as_matrix()
             shift = rng.normal(0.0, 0.02 * c.severity, (n, 3))
@@ -190,7 +197,8 @@ def corrupt_cameras(images: np.ndarray, T_lidar_from_cam: np.ndarray, intrinsics
         elif c.name == "motion_blur":   # the geometry the loader was given, before any noise above
             vectors = motion_blur.blur_vectors(c.severity, T_lidar_from_cam, up_lidar, intrinsics, img_aug)
             images = motion_blur.blur_images(images, vectors)
-    return images, T
+    images[missing] = 0.0
+    return images, T, missing
 
 
 # ---------------------------------------------------------------- one sensor's records

@@ -67,8 +67,10 @@ class Sample:
     image_features : (N, fpn_ch, h, w) float32 the frozen image encoder's FPN features of the
         network images, read from a feature cache (:mod:`clfbev.feature_cache`; ``images`` is then
         (N, 3, 0, 0): no pixel is decoded), or None.
-    camera_dropped : the cameras are absent for this training sample (modality dropout): the
-        model's camera BEV of it is zeros (:class:`clfbev.model.CLFusionBEV`).
+    camera_missing : (N,) bool the cameras that delivered nothing (modality dropout in training,
+        ``camera_crash`` and ``frame_lost`` at evaluation), or None (all delivered): the model
+        lifts nothing from them, and a sample without any camera gets an all-zero camera BEV
+        (:class:`clfbev.model.CLFusionBEV`).
     """
 
     images: np.ndarray
@@ -82,7 +84,7 @@ class Sample:
     sample_token: str
     pasted: np.ndarray | None = None
     image_features: np.ndarray | None = None
-    camera_dropped: bool = False
+    camera_missing: np.ndarray | None = None
 
 
 @dataclass
@@ -94,8 +96,8 @@ class Batch:
     img_aug : (B, N, 3, 3).  T_global_from_lidar : (B, 4, 4) float64.
     points : list of B (n_i, 5).  gt_boxes : list of B (M_i, 9).  gt_labels : list of B (M_i,).
     sample_tokens : list of B str.  pasted : list of B (n_i,) bool or None (see :class:`Sample`).
-    image_features : (B, N, fpn_ch, h, w) float32 or None.  camera_dropped : (B,) bool or None
-    (none dropped).
+    image_features : (B, N, fpn_ch, h, w) float32 or None.  camera_missing : (B, N) bool or None
+    (every camera delivered).
     """
 
     images: Tensor
@@ -109,7 +111,7 @@ class Batch:
     sample_tokens: list[str] = field(default_factory=list)
     pasted: list[Tensor | None] = field(default_factory=list)
     image_features: Tensor | None = None
-    camera_dropped: Tensor | None = None
+    camera_missing: Tensor | None = None
 
     def to(self, device: torch.device | str) -> "Batch":
         """A copy with every tensor on ``device`` (tokens are shared)."""
@@ -125,7 +127,7 @@ class Batch:
             sample_tokens=list(self.sample_tokens),
             pasted=[None if m is None else m.to(device) for m in self.pasted],
             image_features=None if self.image_features is None else self.image_features.to(device),
-            camera_dropped=None if self.camera_dropped is None else self.camera_dropped.to(device),
+            camera_missing=None if self.camera_missing is None else self.camera_missing.to(device),
         )
 
 
@@ -149,8 +151,9 @@ def collate(samples: list[Sample]) -> Batch:
         pasted=[None if s.pasted is None else _tensor(s.pasted) for s in samples],
         image_features=(None if any(s.image_features is None for s in samples)
                         else _tensor(np.stack([s.image_features for s in samples]))),
-        camera_dropped=(torch.tensor([s.camera_dropped for s in samples])
-                        if any(s.camera_dropped for s in samples) else None),
+        camera_missing=(None if all(s.camera_missing is None for s in samples) else
+                        torch.from_numpy(np.stack([np.zeros(len(s.intrinsics), bool) if s.camera_missing is None
+                                                   else s.camera_missing for s in samples]))),
     )
 
 
@@ -296,15 +299,17 @@ class NuScenesDetection(torch.utils.data.Dataset):
         T_lidar_from_global = np.linalg.inv(T_global_from_lidar)
         images, K, T_lidar_from_cam, A = self._cameras(sample, T_lidar_from_global)
         points, rings = self._points(lidar_sd, T_lidar_from_global)
+        missing = None
         if self.corruptions:
             T_ego_from_lidar = self._T_parent_from(lidar_sd, "calibrated_sensor")
             forward_lidar = T_ego_from_lidar[:3, :3].T @ np.array([1.0, 0, 0])
             up_lidar = T_ego_from_lidar[:3, :3].T @ np.array([0, 0, 1.0])
             points = corruptions.corrupt_points(points, rings, forward_lidar,
                                                 corruptions.lidar_corruptions(self.corruptions), sample["token"])
-            images, T_lidar_from_cam = corruptions.corrupt_cameras(
+            images, T_lidar_from_cam, missing = corruptions.corrupt_cameras(
                 images, T_lidar_from_cam, K, A, up_lidar, corruptions.camera_corruptions(self.corruptions),
                 sample["token"])
+            missing = missing if missing.any() else None
         boxes, labels = self._boxes(sample, T_lidar_from_global)
         return Sample(
             images=images,
@@ -316,6 +321,7 @@ class NuScenesDetection(torch.utils.data.Dataset):
             gt_labels=labels,
             T_global_from_lidar=T_global_from_lidar,
             sample_token=sample["token"],
+            camera_missing=missing,
         )
 
     def lidar_and_boxes(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -24,9 +24,10 @@ and the camera branch learns depth from the lidar from the first step
 The forward returns :class:`clfbev.outputs.ModelOutputs`; the training targets are built with
 the batch in the loader and the loss is taken outside the model (:mod:`clfbev.supervision`).
 
-An absent sensor (modality dropout, in training): a sample whose cameras are dropped
-(``Batch.camera_dropped``) gets an all-zero camera BEV (:func:`camera_absent`); one whose lidar
-is dropped has no points, which the lidar encoder turns into an all-zero lidar BEV.
+An absent sensor (modality dropout in training, a crashed sensor at evaluation): nothing is
+lifted from a camera that delivered nothing (``Batch.camera_missing``), and a sample without any
+camera gets an all-zero camera BEV (:func:`camera_absent`); one without its lidar has no points,
+which the lidar encoder turns into an all-zero lidar BEV.
 
 Frames: everything is in the key-frame lidar frame; BEV maps are (B, C, ny, nx) with rows along
 y and columns along x over ``cfg.pc_range``. Predictions are boxes in that frame.
@@ -193,8 +194,9 @@ class CLFusionBEV(nn.Module):
         if self.camera_encoder is not None:
             cam_bev, depth, semantics = self.camera_encoder.lift_splat(batch.images, batch.intrinsics,
                                                                        batch.T_lidar_from_cam, batch.img_aug,
-                                                                       self._oracle_bins(batch), batch.image_features)
-            cam_bev = camera_absent(cam_bev, batch.camera_dropped)
+                                                                       self._oracle_bins(batch), batch.image_features,
+                                                                       batch.camera_missing)
+            cam_bev = camera_absent(cam_bev, None if batch.camera_missing is None else batch.camera_missing.all(1))
         if self.variant == "lidar":
             return Encoded(lidar.bev, None, None, motion, AttentionInputs())
         if self.variant == "camera":
@@ -260,8 +262,8 @@ class CLFusionBEV(nn.Module):
 
 
 def camera_absent(cam_bev: Tensor, dropped: Tensor | None) -> Tensor:
-    """The camera BEV (B, C, ny, nx) with the samples whose cameras are absent, ``dropped`` (B,)
-    bool (modality dropout; None: none), set to exactly 0: what the model takes a missing camera
+    """The camera BEV (B, C, ny, nx) with the samples whose cameras are all absent, ``dropped``
+    (B,) bool (None: none), set to exactly 0: what the model takes a missing camera
     to give, as a missing lidar gives no points and so an all-zero lidar BEV. No gradient
     reaches the camera encoder through a dropped sample's BEV."""
     if dropped is None:

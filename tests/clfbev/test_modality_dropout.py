@@ -45,9 +45,9 @@ def samples(tiny_dataset, micro):
 def test_drop_sensors_removes_exactly_one_sensor_with_its_probability(samples):
     _, _, (s, _) = samples
     no_lidar = drop_sensors(s, np.random.default_rng(0), 1.0, 1.0)
-    assert no_lidar.points.shape == (0, 5) and not no_lidar.camera_dropped      # never both
+    assert no_lidar.points.shape == (0, 5) and no_lidar.camera_missing is None      # never both
     no_camera = drop_sensors(s, np.random.default_rng(0), 0.0, 1.0)
-    assert no_camera.camera_dropped and no_camera.points is s.points
+    assert no_camera.camera_missing.tolist() == [True] * 6 and no_camera.points is s.points
     kept = drop_sensors(s, np.random.default_rng(0), 0.0, 0.0)
     assert kept is s
     for name in ("images", "intrinsics", "T_lidar_from_cam", "img_aug", "gt_boxes", "gt_labels"):
@@ -58,8 +58,8 @@ def test_drop_sensors_removes_exactly_one_sensor_with_its_probability(samples):
         u = np.random.default_rng(seed).random(2)
         out = drop_sensors(s, np.random.default_rng(seed), 0.3, 0.5)
         lidar += len(out.points) == 0
-        camera += out.camera_dropped
-        assert (len(out.points) == 0) == (u[0] < 0.3) and out.camera_dropped == (u[0] >= 0.3 and u[1] < 0.5)
+        camera += out.camera_missing is not None
+        assert (len(out.points) == 0) == (u[0] < 0.3) and (out.camera_missing is not None) == (u[0] >= 0.3 and u[1] < 0.5)
     for count, p in ((lidar, 0.3), (camera, 0.35)):
         assert abs(count / n - p) < 4 * (p * (1 - p) / n) ** 0.5
 
@@ -71,7 +71,7 @@ def test_the_draws_are_the_samples_own_and_shift_no_other_stream(samples):
     again = EpochSamples(ds, 3, 1, AugmentConfig(), cfg.pc_range, dropout_lidar=0.5, dropout_camera=0.5)
     for i in range(len(ds)):
         a, b, c = plain[i], dropping[i], again[i]
-        assert np.array_equal(b.points, c.points) and b.camera_dropped == c.camera_dropped   # (seed, epoch, i)
+        assert np.array_equal(b.points, c.points) and np.array_equal(b.camera_missing, c.camera_missing)   # (seed, epoch, i)
         assert np.array_equal(a.images, b.images) and np.array_equal(a.gt_boxes, b.gt_boxes)
         assert np.array_equal(a.T_lidar_from_cam, b.T_lidar_from_cam)
         assert len(b.points) == 0 or np.array_equal(a.points, b.points)
@@ -110,7 +110,7 @@ def test_a_dropped_sensor_gives_an_exactly_zero_bev(samples):
 
     # Cameras dropped: exactly zero for that sample, the other's as it was, and no gradient of
     # the detector reaches the camera encoder through the dropped one.
-    lidar_c, camera_c, raw, out = fuser_inputs(model, collate([replace(s0, camera_dropped=True), s1]))
+    lidar_c, camera_c, raw, out = fuser_inputs(model, collate([replace(s0, camera_missing=np.ones(6, bool)), s1]))
     raw.retain_grad()
     assert torch.count_nonzero(camera_c[0]) == 0 and torch.equal(camera_c[1], camera[1])
     assert torch.equal(lidar_c, lidar)
@@ -128,6 +128,26 @@ def test_a_dropped_sensor_gives_an_exactly_zero_bev(samples):
     assert torch.count_nonzero(lidar_e[0]) == 0 and torch.equal(lidar_e[1], ref[1])
 
 
+def test_a_missing_camera_gives_nothing_and_all_missing_is_the_dropped_bev(samples):
+    """A camera marked missing (``camera_crash`` at evaluation) adds nothing to the camera BEV:
+    whatever its images hold, the BEV is that of the other five; with all six missing the BEV is
+    exactly the dropped one (zero), so a crash at evaluation is what modality dropout trained."""
+    cfg, _, (s0, _) = samples
+    torch.manual_seed(0)
+    model = CLFusionBEV(cfg, "concat").eval()
+    one = np.zeros(6, bool)
+    one[2] = True
+    noise = s0.images.copy()
+    noise[2] = np.random.default_rng(0).normal(0.0, 1.0, noise[2].shape)
+    with torch.no_grad():
+        _, full, raw_full, _ = fuser_inputs(model, collate([s0]))
+        _, a, raw_a, _ = fuser_inputs(model, collate([replace(s0, camera_missing=one)]))
+        _, b, raw_b, _ = fuser_inputs(model, collate([replace(s0, images=noise, camera_missing=one)]))
+        _, none, _, _ = fuser_inputs(model, collate([replace(s0, camera_missing=np.ones(6, bool))]))
+    assert torch.equal(raw_a, raw_b) and not torch.allclose(raw_a, raw_full)
+    assert torch.equal(a, b) and torch.count_nonzero(none) == 0
+
+
 def test_evaluation_is_untouched(tiny_dataset, micro):
     cfg = load_config(micro)
     tc = TrainConfig(modality_dropout_lidar=1.0, modality_dropout_camera=1.0, augment=False, gt_paste=0,
@@ -138,8 +158,8 @@ def test_evaluation_is_untouched(tiny_dataset, micro):
     plain = NuScenesDetection(tiny_dataset, VERSION, "sim-val", cfg.data_config())
     for i in range(len(data.val_set)):
         v = data.val_set[i]
-        assert not v.camera_dropped and np.array_equal(v.points, plain[i].points) and len(v.points) > 0
-    assert collate([data.val_set[0]]).camera_dropped is None
+        assert v.camera_missing is None and np.array_equal(v.points, plain[i].points) and len(v.points) > 0
+    assert collate([data.val_set[0]]).camera_missing is None
     # The lidar-only and camera-only variants have no other sensor to stand on.
     for variant in ("lidar", "camera"):
         with pytest.raises(ConfigError, match="need a variant with both sensors"):

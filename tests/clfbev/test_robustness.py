@@ -67,15 +67,16 @@ def test_fov_density_and_lidar_missing(clean):
     assert abs(k - n / 2) < 5 * math.sqrt(n / 4)       # binomial(n, 1/2), 5 sigma
 
 
-def test_camera_crash_zeroes_exactly_k_images(clean):
+def test_camera_crash_zeroes_and_marks_exactly_k_cameras(clean):
     root, ds = clean
     s = ds[1]
     images, points = np.asarray(s.images), np.asarray(s.points)
+    assert s.camera_missing is None
     for k in (1, 3, 6):
         bad = _corrupted(root, Corruption("camera_crash", k))[1]
         bad_images = np.asarray(bad.images)
         zero = (bad_images.reshape(len(bad_images), -1) == 0).all(1)
-        assert int(zero.sum()) == k
+        assert int(zero.sum()) == k and np.array_equal(bad.camera_missing, zero)
         np.testing.assert_array_equal(bad_images[~zero], images[~zero])
         np.testing.assert_array_equal(np.asarray(bad.points), points)
     again = _corrupted(root, Corruption("camera_crash", 3))[1]
