@@ -40,6 +40,7 @@ from torch import Tensor
 
 from clfbev import corruptions
 from clfbev.errors import DataError
+from clfbev.geometry import batch_depth_bins
 from clfbev.sensor_files import IMAGE_MEAN, IMAGE_STD, load_image, load_points, resize_and_crop
 from clfbev.settings import DataConfig
 
@@ -98,6 +99,13 @@ class Batch:
     sample_tokens : list of B str.  pasted : list of B (n_i,) bool or None (see :class:`Sample`).
     image_features : (B, N, fpn_ch, h, w) float32 or None.  camera_missing : (B, N) bool or None
     (every camera delivered).
+    depth_bins : (B, N, H / s, W / s) int64 per camera feature cell (stride s =
+        ``ModelConfig.feature_stride``), the depth bin (camera z, ``ModelConfig.depth_bins``) of
+        its nearest key-frame lidar point, pasted points left out, -1 where none
+        (:func:`clfbev.geometry.batch_depth_bins`): the depth the oracle lift
+        (``ModelConfig.cam_oracle_depth``) lifts with, projected once in the loader by
+        :func:`collate` with that config (or by the training collate, from its depth targets);
+        None without the oracle.
     """
 
     images: Tensor
@@ -112,6 +120,7 @@ class Batch:
     pasted: list[Tensor | None] = field(default_factory=list)
     image_features: Tensor | None = None
     camera_missing: Tensor | None = None
+    depth_bins: Tensor | None = None
 
     def to(self, device: torch.device | str) -> "Batch":
         """A copy with every tensor on ``device`` (tokens are shared)."""
@@ -128,6 +137,7 @@ class Batch:
             pasted=[None if m is None else m.to(device) for m in self.pasted],
             image_features=None if self.image_features is None else self.image_features.to(device),
             camera_missing=None if self.camera_missing is None else self.camera_missing.to(device),
+            depth_bins=None if self.depth_bins is None else self.depth_bins.to(device),
         )
 
 
@@ -136,9 +146,11 @@ def _tensor(a: np.ndarray) -> Tensor:
     return torch.from_numpy(a if a.flags.writeable else a.copy())
 
 
-def collate(samples: list[Sample]) -> Batch:
-    """numpy Samples -> the torch Batch: fixed-size fields stacked, points and boxes per-sample lists."""
-    return Batch(
+def collate(samples: list[Sample], model_cfg=None) -> Batch:
+    """numpy Samples -> the torch Batch: fixed-size fields stacked, points and boxes per-sample
+    lists; with ``model_cfg`` (the :class:`clfbev.config.ModelConfig` of the model the batch is
+    for) and its ``cam_oracle_depth`` on, the oracle's ``depth_bins`` too (else nothing more)."""
+    batch = Batch(
         images=_tensor(np.stack([s.images for s in samples])),
         intrinsics=_tensor(np.stack([s.intrinsics for s in samples])),
         T_lidar_from_cam=_tensor(np.stack([s.T_lidar_from_cam for s in samples])),
@@ -155,6 +167,9 @@ def collate(samples: list[Sample]) -> Batch:
                         torch.from_numpy(np.stack([np.zeros(len(s.intrinsics), bool) if s.camera_missing is None
                                                    else s.camera_missing for s in samples]))),
     )
+    if model_cfg is not None and model_cfg.cam_oracle_depth:
+        batch.depth_bins = batch_depth_bins(batch, model_cfg)
+    return batch
 
 
 # ---------------------------------------------------------------- transforms and boxes

@@ -6,7 +6,8 @@ need (a leaf: the model never imports the training supervision).
   projection into the cameras.
 - :func:`nearest_lidar_points` / :func:`nearest_depth_bins`: the nearest key-frame lidar point of
   every camera feature cell, projected through the same geometry the lift uses (BEVDepth's depth
-  target, and the oracle lift's depth).
+  target, and the oracle lift's depth); :func:`batch_nearest_lidar_points` /
+  :func:`batch_depth_bins` those of a batch's own points and cameras, pasted points left out.
 - :func:`direction_target`: the direction bin of a heading (the head's direction classifier).
 """
 from __future__ import annotations
@@ -125,6 +126,20 @@ def nearest_depth_bins(points: list[Tensor], cams: CameraGeometry, ignore: list[
     """
     depth, _ = nearest_lidar_points(points, cams, ignore)
     return bins_of(depth, cams.depth_bins)
+
+
+def batch_nearest_lidar_points(batch, cfg) -> tuple[Tensor, Tensor]:
+    """:func:`nearest_lidar_points` of a :class:`clfbev.data.Batch`: its points, its cameras as the
+    model of ``cfg`` (a :class:`clfbev.config.ModelConfig`) sees them, its pasted points left out
+    (they have no pixels). The one projection behind the depth targets and the oracle lift."""
+    return nearest_lidar_points(batch.points, CameraGeometry.of_batch(batch, cfg), batch.pasted or None)
+
+
+def batch_depth_bins(batch, cfg) -> Tensor:
+    """(B, N, H / s, W / s) int64 :func:`bins_of` ``cfg.depth_bins`` of the depths of
+    :func:`batch_nearest_lidar_points`, -1 where a cell has no point."""
+    depth, _ = batch_nearest_lidar_points(batch, cfg)
+    return bins_of(depth, cfg.depth_bins)
 
 
 def bins_of(depth: Tensor, depth_bins: tuple[float, float, float]) -> Tensor:

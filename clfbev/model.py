@@ -46,7 +46,6 @@ from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import VARIANTS, ModelConfig
 from clfbev.data import Batch
 from clfbev.fusion import BSM, MCM, ConvFuser
-from clfbev.geometry import CameraGeometry, nearest_depth_bins
 from clfbev.head import AnchorHead, Detections, decode
 from clfbev.layers import BN_EPS, BN_MOMENTUM, conv_bn_relu
 from clfbev.lidar_encoder import LidarEncoder
@@ -206,12 +205,14 @@ class CLFusionBEV(nn.Module):
 
     def _oracle_bins(self, batch: Batch) -> Tensor | None:
         """(B, N, h, w) the key-frame lidar's depth bin per camera cell (-1: none) with
-        ``cfg.cam_oracle_depth``, else None; the cells the depth loss is trained on."""
+        ``cfg.cam_oracle_depth``, else None: ``batch.depth_bins``, projected in the loader (the
+        depth loss's targets where it trains)."""
         if not self.cfg.cam_oracle_depth:
             return None
-        cfg = self.cfg
-        cams = CameraGeometry.of_batch(batch, cfg)
-        return nearest_depth_bins(batch.points, cams, batch.pasted or None)
+        if batch.depth_bins is None:
+            raise ValueError("cam_oracle_depth lifts with Batch.depth_bins, which this batch lacks: collate it "
+                             "with the model's config (clfbev.data.collate(samples, cfg)) or TrainingCollate")
+        return batch.depth_bins
 
     def fuse(self, lidar_bev: Tensor, cam_bev: Tensor) -> tuple[Tensor, AttentionInputs]:
         """MCM -> ConvFuser -> BSM, as the variant has them: (B, Cl, ny, nx), (B, Cc, ny, nx) ->

@@ -11,6 +11,7 @@ Prints a markdown table. A missing or junk file is one line naming it, exit 2.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,16 +26,16 @@ def bin_errors(model, dataset, every: int) -> tuple[np.ndarray, np.ndarray]:
     """(n,) the target depth in metres of every lidar-seen camera cell of every ``every``-th
     sample, and (n,) its arg-max bin's distance from the target bin, in bins."""
     from clfbev.data import collate
-    from clfbev.geometry import CameraGeometry, depth_bin_centres, nearest_depth_bins
+    from clfbev.geometry import batch_depth_bins, depth_bin_centres
     cfg = model.cfg
     centres = depth_bin_centres(cfg.depth_bins)
     depth, error = [], []
     with torch.no_grad():
         for i in range(0, len(dataset), every):
             batch = collate([dataset[i]])
-            cams = CameraGeometry.of_batch(batch, cfg)
-            target = nearest_depth_bins(batch.points, cams)                    # (1, N, h, w), -1: none
-            predicted = model(batch).depth.argmax(dim=2)                  # (1, N, h, w)
+            target = batch_depth_bins(batch, cfg)                              # (1, N, h, w), -1: none
+            # An oracle model lifts with the target itself: one projection for both.
+            predicted = model(replace(batch, depth_bins=target)).depth.argmax(dim=2)      # (1, N, h, w)
             seen = target >= 0
             depth.append(centres[target[seen]].numpy())
             error.append((predicted[seen] - target[seen]).abs().numpy())

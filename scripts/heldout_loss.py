@@ -27,7 +27,7 @@ def heldout(ckpt: str, data: str, split: str) -> dict[str, float]:
 
     from clfbev.data import NuScenesDetection, collate
     from clfbev.run.checkpoint import load_model
-    from clfbev.supervision.targets import build_targets, training_loss
+    from clfbev.supervision.targets import training_loss, with_targets
     model, _ = load_model(ckpt)
     # The detection's and the depth's targets and terms only: the aux heads do not run here.
     cfg = replace(model.cfg, cam_heatmap=0.0, cam_distill=0.0, cam_distill_teacher="")
@@ -35,8 +35,8 @@ def heldout(ckpt: str, data: str, split: str) -> dict[str, float]:
     sums: dict[str, float] = {}
     with torch.no_grad():
         for i in range(len(dataset)):
-            batch = collate([dataset[i]])
-            targets = build_targets(batch, cfg, model.anchors, cameras=model.camera_encoder is not None)
+            batch, targets = with_targets(collate([dataset[i]]), cfg, model.anchors,
+                                          cameras=model.camera_encoder is not None)
             losses = training_loss(model(batch), targets, cfg)
             losses["loss_reg"] = losses["loss_reg"] + losses["loss_reg_theta"]
             for k in KEYS:

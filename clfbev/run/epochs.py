@@ -115,7 +115,7 @@ def precise_batchnorm(model: CLFusionBEV, train_set: NuScenesDetection, tc: Trai
         m.reset_running_stats()
         m.momentum = None            # a cumulative average over the batches below
     for indices in batches:
-        batch = collate([samples[i] for i in indices]).to(device)
+        batch = collate([samples[i] for i in indices], model.cfg).to(device)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
             model(batch)
     for m, momentum in zip(norms, momenta):

@@ -19,6 +19,7 @@ the benchmark's set (40 scenes, seed 1) is parked for 87 % of the slow vehicles 
 from __future__ import annotations
 
 import json
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -226,7 +227,9 @@ def predict_split(model, dataset: NuScenesDetection, batch_size: int = 1,
     model.eval()
     device = next(model.parameters()).device
     class_names = model.cfg.class_names
-    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, collate_fn=collate)
+    # Collated for the model's config: the oracle lift's depth bins, where it has one, are projected here.
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False,
+                                         collate_fn=partial(collate, model_cfg=model.cfg))
     results: dict[str, list[dict]] = {}
     for batch in loader:
         batch: Batch = batch.to(device)

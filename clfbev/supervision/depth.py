@@ -16,6 +16,10 @@ depth of every pixel it hits, so:
 
 Only key-frame points (time lag 0) are used: the earlier sweeps are motion-compensated for the
 ego but not for moving objects. Points pasted by GT-paste are excluded: they have no pixels.
+
+The oracle lift (``ModelConfig.cam_oracle_depth``) lifts with these very bins: the training
+collate hands its depth targets to the model as ``Batch.depth_bins``
+(:func:`clfbev.supervision.targets.with_targets`), one projection for both.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@ over them.
 
 :class:`TrainingCollate` is the loader's ``collate_fn``: samples -> (:class:`clfbev.data.Batch`,
 :class:`Targets`), so the anchor assignment, the lidar points re-projected into the cameras and
-their classes are computed in the loader workers, beside the next step's training.
+their classes are computed in the loader workers, beside the next step's training (the depth
+targets are also the oracle lift's ``Batch.depth_bins``, :func:`with_targets`).
 :func:`training_loss` takes the model's outputs and those targets:
 
     loss = detection loss (paper eq. 9) + depth weight x depth loss + semantic weight x semantic loss
@@ -15,7 +16,7 @@ BEV's own terms too (:mod:`clfbev.supervision.camera_bev`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -23,7 +24,7 @@ from torch import Tensor
 from clfbev.anchors import make_anchors, match_thresholds
 from clfbev.config import ModelConfig
 from clfbev.data import Batch, Sample, collate
-from clfbev.geometry import CameraGeometry, bins_of, nearest_lidar_points
+from clfbev.geometry import batch_nearest_lidar_points, bins_of
 from clfbev.outputs import ModelOutputs
 from clfbev.supervision.assign import AnchorTargets, assign_targets, stack_targets
 from clfbev.supervision.camera_bev import add_camera_bev_losses, camera_bev_targets, wants_bev_targets
@@ -76,9 +77,8 @@ def build_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool
     ])
     if not cameras:
         return Targets(anchor)
-    cams = CameraGeometry.of_batch(batch, cfg)
     # Pasted points have no pixels: they are no camera's target.
-    depth, nearest = nearest_lidar_points(batch.points, cams, batch.pasted or None)
+    depth, nearest = batch_nearest_lidar_points(batch, cfg)
     semantic = None
     if cfg.loss.semantic > 0:
         semantic = cell_classes(nearest, batch.points, batch.gt_boxes, batch.gt_labels, len(cfg.class_names))
@@ -88,8 +88,23 @@ def build_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool
     return Targets(anchor, bins_of(depth, cfg.depth_bins), semantic, heatmap, teacher_features)
 
 
+def with_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool = True,
+                 teacher: torch.nn.Module | None = None) -> tuple[Batch, Targets]:
+    """``batch`` as the model of ``cfg`` reads it, and its :class:`Targets` (:func:`build_targets`).
+
+    With ``cfg.cam_oracle_depth`` the batch carries the depth targets as ``Batch.depth_bins``: the
+    oracle lifts with exactly the bins the depth loss trains (the same points, pasted ones left
+    out, the same nearest point per cell, the same bins), so one projection serves both.
+    """
+    targets = build_targets(batch, cfg, anchors, cameras, teacher)
+    if cfg.cam_oracle_depth and targets.depth is not None:
+        batch = replace(batch, depth_bins=targets.depth)
+    return batch, targets
+
+
 class TrainingCollate:
-    """The training loader's ``collate_fn``: samples -> (Batch, :class:`Targets`).
+    """The training loader's ``collate_fn``: samples -> (Batch, :class:`Targets`), the batch
+    with the oracle's ``depth_bins`` where ``cfg.cam_oracle_depth`` asks for them (:func:`with_targets`).
 
     Picklable (the loader sends it to its workers); the anchors are made from ``cfg`` in each
     process on first use, and so is the distillation's teacher (``cfg.cam_distill_teacher``).
@@ -106,8 +121,7 @@ class TrainingCollate:
             self._teacher = load_teacher(cfg.cam_distill_teacher, cfg)
 
     def __call__(self, samples: list[Sample]) -> tuple[Batch, Targets]:
-        batch = collate(samples)
-        return batch, build_targets(batch, self.cfg, self.anchors, self.cameras, self.teacher)
+        return with_targets(collate(samples), self.cfg, self.anchors, self.cameras, self.teacher)
 
     @property
     def teacher(self) -> torch.nn.Module | None:
@@ -157,5 +171,5 @@ def batch_loss(model, batch: Batch) -> dict[str, Tensor]:
     outside the training loop (tests, benchmarks)."""
     cameras = model.camera_encoder is not None
     teacher = load_teacher(model.cfg.cam_distill_teacher, model.cfg) if cameras and model.cfg.cam_distill > 0 else None
-    targets = build_targets(batch, model.cfg, model.anchors, cameras, teacher)
+    batch, targets = with_targets(batch, model.cfg, model.anchors, cameras, teacher)
     return training_loss(model(batch), targets, model.cfg)

@@ -103,7 +103,7 @@ def test_the_oracle_lift_puts_a_cells_context_on_its_lidar_point():
 def test_the_model_lifts_with_the_cells_the_depth_loss_trains(tiny_dataset):
     cfg = replace(tiny(), cam_oracle_depth=True)
     ds = NuScenesDetection(tiny_dataset, "v1.0-sim", "all", cfg.data_config())
-    batch = collate([ds[0]])
+    batch = collate([ds[0]], cfg)                     # the oracle's bins are projected here
     model = CLFusionBEV(cfg, "camera").eval()
     bins = model._oracle_bins(batch)
     assert torch.equal(bins, build_targets(batch, cfg, model.anchors).depth)
