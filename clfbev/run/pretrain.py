@@ -9,7 +9,7 @@ depth bins, a per-cell lidarseg class head, and a perspective 3D head (CenterNet
 centre heatmap, and offset, depth, size, heading at the centres). Only the encoder is kept:
 ``RUN/encoder.pt`` (:mod:`clfbev.run.image_init`), which ``clfbev train --image-init`` loads.
 
-The loop is the detector's (:mod:`clfbev.run.train`): the same warmup + cosine learning rate,
+The loop is the detector's (:mod:`clfbev.run.loop`): the same warmup + cosine learning rate,
 AdamW step with clipping, seeded epoch order, atomic ``last.pt``, ``metrics.jsonl`` and
 TensorBoard, progress bar, and the same resume contract: everything random is a pure function
 of ``(seed, epoch)`` or is in the checkpoint, so a run killed at any moment and resumed gives
@@ -35,42 +35,27 @@ from clfbev.data import Batch
 from clfbev.errors import CheckpointError
 from clfbev.pretrain_data import DenseCollate, DenseLabelled, data_identity
 from clfbev.run.checkpoint import Checkpoints, read_torch
-from clfbev.run.epochs import epoch_batches
 from clfbev.run.image_init import save_encoder
-from clfbev.run.run_log import ScalarLog, code_version, write_run_json
-from clfbev.run.train import Loop, TrainState, lr_at, optimizer_step, restore_state
-from clfbev.run.train_config import VERSION, setting
+from clfbev.run.loop import Loop, LoopState, Task, adamw, open_records, restore_state, run_epochs, run_length
+from clfbev.run.train_config import VERSION, OptimConfig, redefault, setting
 from clfbev.supervision.dense import BOX_CODE, LIDARSEG_CLASSES, WEIGHTS, DenseTargets, dense_losses
 
 PRETRAIN_FORMAT = "clfbev-pretrain-v1"
 
 
 @dataclass(frozen=True)
-class PretrainConfig:
-    """Optimisation and bookkeeping settings of one pretraining run: AdamW at ``lr`` with linear
-    warmup over ``warmup_frac`` of the steps, then cosine decay to ``lr * min_lr_ratio``."""
+class PretrainConfig(OptimConfig):
+    """Settings of one pretraining run: the loop's (:class:`clfbev.run.train_config.OptimConfig`),
+    at the defaults of pretraining, and the split it reads."""
 
+    seed: int = redefault(OptimConfig, "seed", 0, "seeds the initial weights and the order of the samples")
+    lr: float = redefault(OptimConfig, "lr", 2e-3, "peak AdamW learning rate")
+    batch_size: int = redefault(OptimConfig, "batch_size", 2, "samples (of six images each) per step")
+    epochs: int = redefault(OptimConfig, "epochs", 10)
     split: str = field(default="sim-train", metadata=setting(
         "split to pretrain on: of a set made for pretraining, with its own simgen seed, never one the "
         "detector is evaluated on"))
     version: str = field(default=VERSION, metadata=setting("table folder under the dataroot"))
-    seed: int = field(default=0, metadata=setting("seeds the initial weights and the order of the samples", lo=0))
-    lr: float = field(default=2e-3, metadata=setting("peak AdamW learning rate", lo=0, lo_open=True))
-    weight_decay: float = field(default=1e-2, metadata=setting("AdamW weight decay", lo=0))
-    warmup_frac: float = field(default=0.05, metadata=setting(
-        "share of the steps of linear warmup", lo=0, hi=1, hi_open=True))
-    min_lr_ratio: float = field(default=1e-2, metadata=setting(
-        "the cosine decay ends at the peak learning rate times this", lo=0, hi=1))
-    grad_clip: float = field(default=10.0, metadata=setting("max global gradient norm", lo=0, lo_open=True))
-    batch_size: int = field(default=2, metadata=setting("samples (of six images each) per step", lo=1))
-    epochs: int = field(default=10, metadata=setting("epochs", lo=1, group="length"))
-    max_steps: int = field(default=0, metadata=setting(
-        "optimizer steps (overrides --epochs; 0: --epochs decides)", lo=0, group="length"))
-    workers: int = field(default=0, metadata=setting("DataLoader worker processes", lo=0, bookkeeping=True))
-    ckpt_minutes: float = field(default=10.0, metadata=setting(
-        "also write last.pt this often (besides every epoch)", lo=0, lo_open=True, bookkeeping=True))
-    save_every_steps: int = field(default=0, metadata=setting(
-        "also write last.pt every N steps (0: off)", lo=0, bookkeeping=True, metavar="N"))
 
 
 def build_camera_encoder(cfg: ModelConfig) -> CameraEncoder:
@@ -124,7 +109,7 @@ class PretrainCheckpoints(Checkpoints):
     """``RUN/last.pt`` of a pretraining run: the whole net (encoder and heads), optimizer, step,
     epoch, settings and torch RNG state, in format :data:`PRETRAIN_FORMAT`."""
 
-    def save(self, path: Path, state: TrainState) -> None:
+    def save(self, path: Path, state: LoopState) -> None:
         io.save_torch(path, {
             "format": PRETRAIN_FORMAT, "model": state.model.state_dict(), "optimizer": state.opt.state_dict(),
             "config": self.cfg.to_dict(), "train": asdict(self.tc), "step": state.step, "epoch": state.epoch,
@@ -133,38 +118,45 @@ class PretrainCheckpoints(Checkpoints):
         self.saved_at = time.monotonic()
 
 
-# ---------------------------------------------------------------- the loop
+class PretrainTask(Task):
+    """Pretraining's part of the loop: the dense-labelled samples (no augmentation) with their
+    targets, the total and the weighted terms in the logs, last.pt at every epoch end."""
+
+    prefix, unit = "pretrain", "images"
+
+    def __init__(self, dataset: DenseLabelled, cfg: ModelConfig) -> None:
+        self.dataset, self.cfg = dataset, cfg
+
+    def epoch_data(self, epoch: int) -> tuple[DenseLabelled, DenseCollate]:
+        return self.dataset, DenseCollate(self.cfg)
+
+    def count(self, batch: Batch) -> int:
+        return batch.images.shape[0] * batch.images.shape[1]
+
+    def logged(self, losses: dict[str, Tensor]) -> dict[str, Tensor]:
+        return {k: losses[k] for k in ("loss", *WEIGHTS)}
+
+    def end_epoch(self, loop: Loop, state: LoopState) -> None:
+        loop.ckpts.save(loop.ckpts.last, state)
+
+
+# ---------------------------------------------------------------- the run
 
 def pretrain(data: str | Path, out: str | Path, cfg: ModelConfig, pc: PretrainConfig, resume: bool = False,
              progress: bool = True) -> dict:
     """Pretrain the camera encoder of ``cfg`` on the dense labels of ``data`` into the run folder
     ``out``; returns a summary (steps, final loss, encoder checkpoint path)."""
-    from tqdm import tqdm
     run = Path(out)
     ckpt = _resume_checkpoint(run / "last.pt", cfg, pc, resume)
     dataset = DenseLabelled(data, pc.version, pc.split, cfg)
-    steps_per_epoch = len(epoch_batches(len(dataset), pc.batch_size, pc.seed, 0, 0, 1))
-    total = pc.max_steps if pc.max_steps > 0 else pc.epochs * steps_per_epoch
+    steps_per_epoch, total = run_length(len(dataset), pc, 0, 1)
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     state = _start_state(cfg, pc, ckpt)
     state.model.to(device)
-    version = code_version()
-    run.mkdir(parents=True, exist_ok=True)
-    write_run_json(run, cfg, "pretrain", pc, 1, version, state.step)
-    log = ScalarLog(run, state.step)
-    bar = tqdm(total=total, initial=state.step, disable=not progress, unit="step", dynamic_ncols=True)
-    loop = Loop(run, pc, None, PretrainLoss(state.model), device, 0, 1, log, bar,
-                PretrainCheckpoints(run, cfg, "pretrain", pc, version))
-    state.model.train()
-    try:
-        while state.step < total:
-            _pretrain_epoch(loop, state, dataset, steps_per_epoch, total)
-            if state.step == (state.epoch + 1) * steps_per_epoch:
-                state.epoch += 1
-            loop.ckpts.save(loop.ckpts.last, state)
-    finally:
-        bar.close()
-        log.close()
+    version, log, bar = open_records(run, cfg, "pretrain", pc, 0, 1, state.step, total, progress)
+    loop = Loop(run, pc, PretrainTask(dataset, cfg), PretrainLoss(state.model), device, 0, 1, log, bar,
+                PretrainCheckpoints(run, cfg, "pretrain", pc, version), steps_per_epoch, total)
+    run_epochs(loop, state)
     encoder = save_encoder(run / "encoder.pt", state.model.camera_encoder, cfg, sys.argv, data_identity(dataset),
                            state.step, version)
     return {"steps": state.step, "loss": state.loss, "encoder": encoder}
@@ -190,38 +182,14 @@ def _resume_checkpoint(last: Path, cfg: ModelConfig, pc: PretrainConfig, resume:
     return ckpt
 
 
-def _start_state(cfg: ModelConfig, pc: PretrainConfig, ckpt: dict | None) -> TrainState:
+def _start_state(cfg: ModelConfig, pc: PretrainConfig, ckpt: dict | None) -> LoopState:
     """The net seeded with ``pc.seed`` and its AdamW, or both as ``ckpt`` left them (with the RNG)."""
     torch.manual_seed(pc.seed)
     model = PretrainNet(cfg)
-    state = TrainState(model, torch.optim.AdamW(model.parameters(), lr=pc.lr, weight_decay=pc.weight_decay))
+    state = LoopState(model, adamw(model, pc))
     if ckpt is not None:
         restore_state(state, ckpt, "pretraining checkpoint")
     return state
-
-
-def _pretrain_epoch(loop: Loop, state: TrainState, dataset: DenseLabelled, steps_per_epoch: int,
-                    total: int) -> None:
-    """The steps of epoch ``state.epoch`` not trained yet, stopping at step ``total``."""
-    pc = loop.tc
-    batches = epoch_batches(len(dataset), pc.batch_size, pc.seed, state.epoch, 0, 1)
-    done = state.step - state.epoch * steps_per_epoch
-    loader = torch.utils.data.DataLoader(dataset, batch_sampler=batches[done:],
-                                         collate_fn=DenseCollate(state.model.cfg), num_workers=pc.workers)
-    for batch, targets in loader:
-        t0 = time.perf_counter()
-        lr = lr_at(state.step, total, pc)
-        losses, grad_norm = optimizer_step(loop, state, batch.to(loop.device), targets.to(loop.device), lr)
-        rate = batch.images.shape[0] * batch.images.shape[1] / (time.perf_counter() - t0)
-        scalars = {f"pretrain/{k}": float(losses[k].detach()) for k in ("loss", *WEIGHTS)}
-        loop.log.log(state.step, state.epoch, {**scalars, "pretrain/lr": lr, "pretrain/grad_norm": float(grad_norm),
-                                               "pretrain/images_per_s": rate})
-        loop.bar.set_postfix(epoch=state.epoch, loss=f"{state.loss:.3f}", images_s=f"{rate:.1f}")
-        loop.bar.update(1)
-        if loop.ckpts.due(state.step):
-            loop.ckpts.save(loop.ckpts.last, state)
-        if state.step >= total:
-            break
 
 
 def final_loss(summary: dict) -> str:

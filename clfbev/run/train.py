@@ -1,5 +1,7 @@
-"""The training loop, readable top to bottom: data, model, AdamW, warmup + cosine, clipping,
-logs, atomic checkpoints, exact resume, validation by the official metric, and DDP.
+"""Training the detector, readable top to bottom: data, model, AdamW, warmup + cosine, clipping,
+logs, atomic checkpoints, exact resume, validation by the official metric, and DDP. The loop
+itself is :mod:`clfbev.run.loop` (shared with ``clfbev pretrain``); this module gives it the
+detector's samples, loss and epoch end (precise BatchNorm, validation, ``best.pt``).
 
     clfbev train --data DIR --config tiny --variant full --out RUN [--epochs N | --max-steps N]
     torchrun --nproc_per_node 2 -m clfbev train --data DIR --config tiny --out RUN ...
@@ -26,10 +28,8 @@ ranks take the same number of steps); gradients are averaged by DistributedDataP
 
 from __future__ import annotations
 
-import math
 import os
 import sys
-import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -40,31 +40,22 @@ from torch import Tensor, nn
 from clfbev.augment import AugmentConfig
 from clfbev.config import ModelConfig
 from clfbev.data import Batch, NuScenesDetection
-from clfbev.errors import CheckpointError, ConfigError, DataError, TrainError
+from clfbev.errors import CheckpointError, ConfigError, DataError
 from clfbev.feature_cache import CachedFeatureDataset, FeatureCache, encoder_identity
 from clfbev.gt_paste import GTDatabase
 from clfbev.model import CLFusionBEV
 from clfbev.run.camera_init import init_from_camera_run
 from clfbev.run.checkpoint import REQUIRED, RESUME_FIELDS, Checkpoints, check_matches, load_checkpoint
 from clfbev.run.efficientnet_init import EFFICIENTNET_LITE0
-from clfbev.run.epochs import EpochSamples, epoch_batches, precise_batchnorm
+from clfbev.run.epochs import EpochSamples, precise_batchnorm
 from clfbev.run.evaluate import evaluate_model
 from clfbev.run.image_init import init_camera_encoder
 from clfbev.run.lidar_init import init_from_lidar_run
-from clfbev.run.run_log import ScalarLog, code_version, write_run_json
+from clfbev.run.loop import Loop, LoopState, Task, adamw, open_records, restore_state, run_epochs, run_length
 from clfbev.run.torchvision_init import TORCHVISION
 from clfbev.run.train_config import TrainConfig, check_resumable
 from clfbev.supervision.targets import Targets, TrainingCollate, training_loss
 
-def lr_at(step: int, total: int, tc: TrainConfig) -> float:
-    """Learning rate of optimizer step ``step`` (0-based) of ``total``: linear warmup from
-    ``lr / 10`` to ``lr`` over ``warmup_frac`` of the steps, then cosine to ``lr * min_lr_ratio``."""
-    warm = max(1, int(round(tc.warmup_frac * total)))
-    if step < warm:
-        return tc.lr * (0.1 + 0.9 * step / warm)
-    t = (step - warm) / max(1, total - warm)
-    floor = tc.lr * tc.min_lr_ratio
-    return floor + 0.5 * (tc.lr - floor) * (1.0 + math.cos(math.pi * min(1.0, t)))
 
 
 class LossModule(nn.Module):
@@ -95,43 +86,65 @@ class TrainingData:
 
 
 @dataclass
-class TrainState:
-    """Where a run stands: what its checkpoint holds besides the settings, and the last loss and
-    validation (reported, not saved)."""
+class TrainState(LoopState):
+    """Where a run stands (:class:`clfbev.run.loop.LoopState`) with the best validation NDS (in
+    the checkpoint) and the last validation (reported, not saved)."""
 
     model: CLFusionBEV
-    opt: torch.optim.Optimizer
-    step: int = 0
-    epoch: int = 0              # epochs fully done
     best_nds: float = -1.0
-    loss: float = math.nan
     last_val: dict | None = None
 
 
-@dataclass
-class Loop:
-    """The fixed parts of one training process; ``log`` is None on ranks other than 0."""
+class DetectionTask(Task):
+    """The detector's part of the loop: the epoch's augmented samples with their targets, every
+    loss term in the logs, and the epoch end of :meth:`end_epoch`."""
 
-    run: Path
-    tc: TrainConfig
-    data: TrainingData
-    loss_module: nn.Module
-    device: torch.device
-    rank: int
-    world: int
-    log: ScalarLog | None
-    bar: object                 # tqdm
-    ckpts: Checkpoints
+    prefix, unit = "train", "samples"
+
+    def __init__(self, data: TrainingData, tc: TrainConfig, cfg: ModelConfig, cameras: bool) -> None:
+        self.data, self.tc, self.cfg, self.cameras = data, tc, cfg, cameras
+
+    def epoch_data(self, epoch: int) -> tuple[EpochSamples, TrainingCollate]:
+        data, tc = self.data, self.tc
+        # The fade works per epoch (an epoch that starts past paste_until pastes nothing), so
+        # that a run resumed mid-epoch pastes exactly as the uninterrupted one.
+        paste = tc.gt_paste if epoch * data.steps_per_epoch < data.paste_until else 0
+        samples = EpochSamples(data.train_set, tc.seed, epoch, data.augment, self.cfg.pc_range, tc.modality_dropout,
+                               data.gt_db, paste, tc.gt_paste_balanced, tc.modality_dropout_lidar,
+                               tc.modality_dropout_camera)
+        return samples, TrainingCollate(self.cfg, cameras=self.cameras)
+
+    def count(self, batch: Batch) -> int:
+        return len(batch.sample_tokens)
+
+    def logged(self, losses: dict[str, Tensor]) -> dict[str, Tensor]:
+        # Every term the loss returns is logged: what it computes is what the metrics show.
+        return losses
+
+    def end_epoch(self, loop: Loop, state: TrainState) -> None:
+        """After the last step, BatchNorm's statistics recomputed; validation, with best.pt when
+        the NDS improves; last.pt."""
+        data = self.data
+        if state.step >= loop.total:
+            precise_batchnorm(state.model, data.train_set, self.tc, data.augment)
+        if data.val_set is not None:
+            val = state.last_val = evaluate_model(state.model, data.val_set, loop.run / "val")
+            loop.log.log(state.step, state.epoch, {"val/mAP": val["mean_ap"], "val/NDS": val["nd_score"]})
+            loop.bar.write(f"epoch {state.epoch} step {state.step}: val mAP {val['mean_ap']:.4f} "
+                           f"NDS {val['nd_score']:.4f}")
+            if val["nd_score"] > state.best_nds:
+                state.best_nds = val["nd_score"]
+                loop.ckpts.save(loop.ckpts.best, state)
+        loop.ckpts.save(loop.ckpts.last, state)
 
 
-# ---------------------------------------------------------------- the loop
+# ---------------------------------------------------------------- the run
 
 def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc: TrainConfig,
           resume: bool = False, progress: bool = True) -> dict:
     """Train ``variant`` of ``cfg`` on ``data`` into the run folder ``out``; returns a summary
     (steps, final loss, best NDS, last validation). See the module docstring for the contract.
     Call under torchrun for DDP (the process group is set up here)."""
-    from tqdm import tqdm
     run = Path(out)
     rank, world, device = _setup_distributed()
     check_sensor_settings(tc, variant)
@@ -143,30 +156,13 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
     loss_module: nn.Module = LossModule(state.model)
     if world > 1:
         loss_module = nn.parallel.DistributedDataParallel(loss_module)
-    version = code_version()          # a git subprocess: once per run, not at every checkpoint
-    log = None
-    if rank == 0:
-        run.mkdir(parents=True, exist_ok=True)
-        write_run_json(run, cfg, variant, tc, world, version, state.step)
-        log = ScalarLog(run, state.step)
-    bar = tqdm(total=training.total, initial=state.step, disable=not (rank == 0 and progress), unit="step",
-               dynamic_ncols=True)
-    loop = Loop(run, tc, training, loss_module, device, rank, world, log, bar,
-                Checkpoints(run, cfg, variant, tc, version))
-    state.model.train()
+    version, log, bar = open_records(run, cfg, variant, tc, rank, world, state.step, training.total, progress)
+    task = DetectionTask(training, tc, state.model.cfg, state.model.camera_encoder is not None)
+    loop = Loop(run, tc, task, loss_module, device, rank, world, log, bar, Checkpoints(run, cfg, variant, tc, version),
+                training.steps_per_epoch, training.total)
     try:
-        while state.step < training.total:
-            train_epoch(loop, state)
-            if state.step == (state.epoch + 1) * training.steps_per_epoch:
-                state.epoch += 1
-            if rank == 0:
-                end_epoch(loop, state)
-            if world > 1:
-                dist.barrier()
+        run_epochs(loop, state)
     finally:
-        bar.close()
-        if log is not None:
-            log.close()
         if world > 1 and dist.is_initialized():
             dist.destroy_process_group()
     return {"steps": state.step, "epochs": state.epoch, "loss": state.loss, "best_nds": state.best_nds,
@@ -226,8 +222,7 @@ def load_training_data(data: str | Path, cfg: ModelConfig, variant: str, tc: Tra
     val_set = NuScenesDetection(data, tc.version, tc.val_split, cfg.data_config()) if (tc.val_split and rank == 0) else None
     if len(train_set) == 0:
         raise DataError(f"split '{tc.train_split}' of {data} has no samples")
-    steps_per_epoch = len(epoch_batches(len(train_set), tc.batch_size, tc.seed, 0, rank, world))
-    total = tc.max_steps if tc.max_steps > 0 else tc.epochs * steps_per_epoch
+    steps_per_epoch, total = run_length(len(train_set), tc, rank, world)
     return TrainingData(train_set, val_set, AugmentConfig(image=not tc.feature_cache) if tc.augment else None,
                         GTDatabase.from_dataset(train_set) if tc.gt_paste else None,
                         steps_per_epoch, total, int(round(total * (1.0 - tc.gt_paste_fade))))
@@ -262,125 +257,14 @@ def start_state(cfg: ModelConfig, variant: str, tc: TrainConfig, device: torch.d
             raise ConfigError(f"--image-freeze: the variant '{variant}' has no camera encoder")
         model.camera_encoder.freeze_image_features()
     model = model.to(device)
-    state = TrainState(model, torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay))
+    state = TrainState(model, adamw(model, tc))
     if ckpt is not None:
         restore_state(state, ckpt, f"checkpoint {path}")
         state.best_nds = float(ckpt["best_nds"])
     return state
 
 
-def restore_state(state: TrainState, ckpt: dict, what: str) -> None:
-    """Put the weights, the optimizer, the torch RNG, the step and the epoch of ``ckpt`` into
-    ``state``; CheckpointError naming ``what`` when they do not fit."""
-    try:
-        state.model.load_state_dict(ckpt["model"])
-        state.opt.load_state_dict(ckpt["optimizer"])
-        torch.set_rng_state(ckpt["torch_rng"])
-        state.step, state.epoch = int(ckpt["step"]), int(ckpt["epoch"])
-    except (RuntimeError, ValueError, TypeError, KeyError) as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise CheckpointError(f"{what} cannot be resumed ({first})") from None
-
-
-def epoch_loader(loop: Loop, state: TrainState) -> torch.utils.data.DataLoader:
-    """This rank's batches of epoch ``state.epoch`` not trained yet (a resumed run starts inside
-    the epoch), loaded by ``tc.workers`` processes."""
-    tc, data = loop.tc, loop.data
-    batches = epoch_batches(len(data.train_set), tc.batch_size, tc.seed, state.epoch, loop.rank, loop.world)
-    done_in_epoch = state.step - state.epoch * data.steps_per_epoch
-    # The fade works per epoch (an epoch that starts past paste_until pastes nothing), so
-    # that a run resumed mid-epoch pastes exactly as the uninterrupted one.
-    paste = tc.gt_paste if state.epoch * data.steps_per_epoch < data.paste_until else 0
-    samples = EpochSamples(data.train_set, tc.seed, state.epoch, data.augment, state.model.cfg.pc_range,
-                           tc.modality_dropout, data.gt_db, paste, tc.gt_paste_balanced, tc.modality_dropout_lidar,
-                           tc.modality_dropout_camera)
-    collate = TrainingCollate(state.model.cfg, cameras=state.model.camera_encoder is not None)
-    return torch.utils.data.DataLoader(samples, batch_sampler=batches[done_in_epoch:], collate_fn=collate,
-                                       num_workers=tc.workers)
-
-
-def train_epoch(loop: Loop, state: TrainState) -> None:
-    """The steps of epoch ``state.epoch`` left, stopping at the run's last step."""
-    for batch, targets in epoch_loader(loop, state):
-        t0 = time.perf_counter()
-        lr = lr_at(state.step, loop.data.total, loop.tc)
-        losses, grad_norm = optimizer_step(loop, state, batch.to(loop.device), targets.to(loop.device), lr)
-        if loop.rank == 0:
-            rate = len(batch.sample_tokens) * loop.world / (time.perf_counter() - t0)
-            record_step(loop, state, losses, grad_norm, lr, rate)
-        if state.step >= loop.data.total:
-            break
-
-
-def compute_losses(loop: Loop, batch: Batch, targets: Targets) -> dict[str, Tensor]:
-    """The losses of ``batch`` against its ``targets`` (both on the device): the weighted total
-    ``loss`` and its parts, through the DDP-wrapped module; bfloat16 autocast on a GPU."""
-    with torch.autocast(loop.device.type, dtype=torch.bfloat16, enabled=loop.device.type == "cuda"):
-        return loop.loss_module(batch, targets)
-
-
-def optimizer_step(loop: Loop, state: TrainState, batch: Batch, targets: Targets,
-                   lr: float) -> tuple[dict[str, Tensor], Tensor]:
-    """One AdamW step at ``lr`` with the gradient clipped to ``grad_clip``; (losses, gradient
-    norm). A non-finite loss or gradient stops every rank together (TrainError)."""
-    for group in state.opt.param_groups:
-        group["lr"] = lr
-    losses = compute_losses(loop, batch, targets)
-    loss = losses["loss"]
-    kept = f"training stopped; the last good checkpoint {loop.ckpts.last} is kept"
-    if not _all_finite(loss.detach(), loop.world):
-        raise TrainError(f"non-finite loss ({float(loss.detach()):g}) at step {state.step + 1}: {kept}")
-    state.opt.zero_grad(set_to_none=True)
-    loss.backward()
-    grad_norm = nn.utils.clip_grad_norm_(state.model.parameters(), loop.tc.grad_clip)
-    if not _all_finite(grad_norm.detach(), loop.world):
-        raise TrainError(f"non-finite gradient at step {state.step + 1}: {kept}")
-    state.opt.step()
-    state.step += 1
-    state.loss = float(loss.detach())
-    return losses, grad_norm
-
-
-def record_step(loop: Loop, state: TrainState, losses: dict[str, Tensor], grad_norm: Tensor, lr: float,
-                rate: float) -> None:
-    """Rank 0 after a step: its scalars to the logs and the progress bar; last.pt when due."""
-    # Every term the loss returns is logged: what it computes is what the metrics show.
-    loop.log.log(state.step, state.epoch, {**{f"train/{k}": float(v.detach()) for k, v in losses.items()},
-                                           "train/lr": lr, "train/grad_norm": float(grad_norm),
-                                           "train/samples_per_s": rate})
-    loop.bar.set_postfix(epoch=state.epoch, loss=f"{state.loss:.3f}", samples_s=f"{rate:.2f}")
-    loop.bar.update(1)
-    # The last step's last.pt is end_epoch's, after precise BatchNorm: one written here would let a
-    # run killed before that resume as finished, without it.
-    if loop.ckpts.due(state.step) and state.step < loop.data.total:
-        loop.ckpts.save(loop.ckpts.last, state)
-
-
-def end_epoch(loop: Loop, state: TrainState) -> None:
-    """Rank 0 after an epoch (or the run's last step): after the last, BatchNorm's statistics
-    recomputed; validation, with best.pt when the NDS improves; last.pt."""
-    data = loop.data
-    if state.step >= data.total:
-        precise_batchnorm(state.model, data.train_set, loop.tc, data.augment)
-    if data.val_set is not None:
-        val = state.last_val = evaluate_model(state.model, data.val_set, loop.run / "val")
-        loop.log.log(state.step, state.epoch, {"val/mAP": val["mean_ap"], "val/NDS": val["nd_score"]})
-        loop.bar.write(f"epoch {state.epoch} step {state.step}: val mAP {val['mean_ap']:.4f} NDS {val['nd_score']:.4f}")
-        if val["nd_score"] > state.best_nds:
-            state.best_nds = val["nd_score"]
-            loop.ckpts.save(loop.ckpts.best, state)
-    loop.ckpts.save(loop.ckpts.last, state)
-
-
 # ---------------------------------------------------------------- processes
-
-def _all_finite(x: Tensor, world: int) -> bool:
-    """Whether ``x`` is finite on every rank (all ranks must stop together)."""
-    ok = torch.tensor([float(torch.isfinite(x).all())], device=x.device)
-    if world > 1:
-        dist.all_reduce(ok, op=dist.ReduceOp.MIN)
-    return bool(ok.item() > 0)
-
 
 def _setup_distributed() -> tuple[int, int, torch.device]:
     """(rank, world size, device). Under torchrun (WORLD_SIZE > 1) joins the process group:

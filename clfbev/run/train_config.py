@@ -1,11 +1,14 @@
-"""The training settings of one run, written once: :class:`TrainConfig`.
+"""The training settings of one run, written once: :class:`OptimConfig`, what the training loop
+(:mod:`clfbev.run.loop`) reads, and :class:`TrainConfig`, the detector's settings built on it
+(``clfbev pretrain``'s :class:`clfbev.run.pretrain.PretrainConfig` is the other).
 
 Each field carries its command-line flag, help, allowed range and kind in its metadata, and
 everything else is generated from there: the ``clfbev train`` options
 (:func:`add_train_arguments`), the settings of parsed options (:func:`train_config_from`, with
 the range checks), and :data:`BOOKKEEPING`, the fields that do not change the trained weights
 (a resume and the results table ignore them). :func:`recipe` gives the defaults of a model
-preset; every option left out keeps its recipe's value.
+preset; every option left out keeps its recipe's value. The settings are one flat dataclass
+(the inherited fields first), so a run's ``train`` record is one flat dict of them.
 """
 from __future__ import annotations
 
@@ -30,7 +33,8 @@ def setting(help: str, *, flag: str | None = None, lo: float | None = None, hi: 
 
     help : the option's help. flag : the option (default: ``--`` and the field name with dashes).
     lo, hi : the allowed range, inclusive unless ``lo_open`` / ``hi_open``; floats must be finite.
-    recipe : a model preset's recipe chooses the default (:func:`recipe`); the help says so.
+    recipe : a model preset's recipe chooses the default (:func:`recipe`); the help of a ``clfbev train``
+    option says so.
     bookkeeping : the field does not change the trained weights (how often to save, loader
     processes). group : options of one group exclude each other (``--epochs`` / ``--max-steps``).
     """
@@ -38,13 +42,51 @@ def setting(help: str, *, flag: str | None = None, lo: float | None = None, hi: 
             "recipe": recipe, "bookkeeping": bookkeeping, "metavar": metavar, "group": group}
 
 
-@dataclass(frozen=True)
-class TrainConfig:
-    """Optimisation and bookkeeping settings of one run; the defaults are the paper's GPU recipe.
+def redefault(settings: type, name: str, default, help: str | None = None) -> Field:
+    """Field ``name`` of the settings dataclass ``settings`` with another default (and help), for
+    a subclass that starts its runs elsewhere: the option, range and kind stay the setting's."""
+    meta = next(f for f in fields(settings) if f.name == name).metadata
+    return field(default=default, metadata={**meta, "help": help or meta["help"]})
 
-    AdamW at ``lr`` with linear warmup over ``warmup_frac`` of the steps, then cosine decay to
-    ``lr * min_lr_ratio``. ``modality_dropout``: a training sample loses its camera (zero images)
-    or its lidar (no points), the input a failed sensor gives at test time.
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """What the training loop reads: AdamW at ``lr`` (weight decay ``weight_decay``) with linear
+    warmup over ``warmup_frac`` of the steps, then cosine decay to ``lr * min_lr_ratio``
+    (:func:`clfbev.run.loop.lr_at`); the gradient clipped to ``grad_clip``; ``batch_size``
+    samples per step; ``epochs`` or ``max_steps``; the seed of the weights and of the samples'
+    order; and when to save. The defaults and help are the detector's paper recipe
+    (:class:`TrainConfig`); a subclass changes a default with :func:`redefault`."""
+
+    seed: int = field(default=0, metadata=setting(
+        "seeds the initial weights, the order of the samples and their augmentation", lo=0))
+    lr: float = field(default=2e-4, metadata=setting(
+        "peak AdamW learning rate (tiny 2e-3, paper 2e-4)", lo=0, lo_open=True, recipe=True))
+    weight_decay: float = field(default=1e-2, metadata=setting("AdamW weight decay", lo=0, recipe=True))
+    warmup_frac: float = field(default=0.05, metadata=setting(
+        "share of the steps of linear warmup", lo=0, hi=1, hi_open=True, recipe=True))
+    min_lr_ratio: float = field(default=1e-2, metadata=setting(
+        "the cosine decay ends at the peak learning rate times this", lo=0, hi=1, recipe=True))
+    grad_clip: float = field(default=10.0, metadata=setting(
+        "max global gradient norm", lo=0, lo_open=True, recipe=True))
+    batch_size: int = field(default=2, metadata=setting("samples per step and process", lo=1, recipe=True))
+    epochs: int = field(default=20, metadata=setting("epochs", lo=1, recipe=True, group="length"))
+    max_steps: int = field(default=0, metadata=setting(
+        "optimizer steps (overrides --epochs; 0: --epochs decides)", lo=0, group="length"))
+    workers: int = field(default=0, metadata=setting("DataLoader worker processes", lo=0, bookkeeping=True))
+    ckpt_minutes: float = field(default=10.0, metadata=setting(
+        "also write last.pt this often (besides every epoch)", lo=0, lo_open=True, bookkeeping=True))
+    save_every_steps: int = field(default=0, metadata=setting(
+        "also write last.pt every N steps (0: off)", lo=0, bookkeeping=True, metavar="N"))
+
+
+@dataclass(frozen=True)
+class TrainConfig(OptimConfig):
+    """Settings of one run of the detector: the loop's (:class:`OptimConfig`) and its data,
+    augmentation and initialisation; the defaults are the paper's GPU recipe.
+
+    ``modality_dropout``: a training sample loses its camera (zero images) or its lidar (no
+    points), the input a failed sensor gives at test time.
     ``modality_dropout_lidar`` / ``modality_dropout_camera``: a training sample's lidar is absent
     (no points) with the one probability, else its cameras (an all-zero camera BEV,
     :func:`clfbev.model.camera_absent`) with the other, so a fused model learns to stand on either
@@ -71,21 +113,6 @@ class TrainConfig:
     val_split: str = field(default="sim-val", metadata=setting(
         "split validated every epoch; '' to skip validation"))
     version: str = field(default=VERSION, metadata=setting("table folder under the dataroot"))
-    seed: int = field(default=0, metadata=setting(
-        "seeds the initial weights, the order of the samples and their augmentation", lo=0))
-    lr: float = field(default=2e-4, metadata=setting(
-        "peak AdamW learning rate (tiny 2e-3, paper 2e-4)", lo=0, lo_open=True, recipe=True))
-    weight_decay: float = field(default=1e-2, metadata=setting("AdamW weight decay", lo=0, recipe=True))
-    warmup_frac: float = field(default=0.05, metadata=setting(
-        "share of the steps of linear warmup", lo=0, hi=1, hi_open=True, recipe=True))
-    min_lr_ratio: float = field(default=1e-2, metadata=setting(
-        "the cosine decay ends at the peak learning rate times this", lo=0, hi=1, recipe=True))
-    grad_clip: float = field(default=10.0, metadata=setting(
-        "max global gradient norm", lo=0, lo_open=True, recipe=True))
-    batch_size: int = field(default=2, metadata=setting("samples per step and process", lo=1, recipe=True))
-    epochs: int = field(default=20, metadata=setting("epochs", lo=1, recipe=True, group="length"))
-    max_steps: int = field(default=0, metadata=setting(
-        "optimizer steps (overrides --epochs; 0: --epochs decides)", lo=0, group="length"))
     augment: bool = field(default=True, metadata=setting(
         "random global and image augmentation", recipe=True))
     modality_dropout: float = field(default=0.0, metadata=setting(
@@ -102,11 +129,6 @@ class TrainConfig:
         "train the last share F of the steps without pasting", lo=0, hi=1, recipe=True, metavar="F"))
     gt_paste_balanced: bool = field(default=False, metadata=setting(
         "draw the pasted objects class-balanced (every class as often) instead of uniformly", recipe=True))
-    workers: int = field(default=0, metadata=setting("DataLoader worker processes", lo=0, bookkeeping=True))
-    ckpt_minutes: float = field(default=10.0, metadata=setting(
-        "also write last.pt this often (besides every epoch)", lo=0, lo_open=True, bookkeeping=True))
-    save_every_steps: int = field(default=0, metadata=setting(
-        "also write last.pt every N steps (0: off)", lo=0, bookkeeping=True, metavar="N"))
     precise_bn_batches: int = field(default=32, metadata=setting(
         "recompute BatchNorm's statistics over this many training batches after the last step (0: off)",
         lo=0, recipe=True, metavar="N"))
@@ -192,9 +214,11 @@ def _in_range(value, meta: dict) -> bool:
     return above and below
 
 
-def _help(f: Field) -> str:
+def _help(f: Field, from_recipe: bool) -> str:
+    """The option's help, then its default ("recipe" where ``from_recipe`` and the field is a
+    recipe's) and range."""
     meta = f.metadata
-    notes = ["recipe" if meta["recipe"] else f"default {f.default!r}"]
+    notes = ["recipe" if from_recipe and meta["recipe"] else f"default {f.default!r}"]
     if meta["lo"] is not None:
         notes.append(_range_text(meta))
     return f"{meta['help']} [{', '.join(notes)}]"
@@ -223,7 +247,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--variant", default="full", choices=VARIANTS,
                    help="lidar | camera | concat (BEVFusion-style) | mcm (+cross-attention) | full (+BSM)")
     p.add_argument("--out", required=True, type=Path, help="run folder: last.pt, best.pt, run.json, metrics.jsonl, tb/")
-    add_setting_options(p, TrainConfig)
+    add_setting_options(p, TrainConfig, from_recipe=True)
     p.add_argument("--no-depth-loss", action="store_true",
                    help="no lidar supervision of the camera's depth (the ablation; sets loss.depth = 0)")
     p.add_argument("--threads", type=whole_number(0), default=0, help="torch CPU threads (0: torch's default)")
@@ -231,9 +255,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def add_setting_options(p: argparse.ArgumentParser, settings: type) -> None:
+def add_setting_options(p: argparse.ArgumentParser, settings: type, from_recipe: bool = False) -> None:
     """One option per field of the dataclass ``settings`` (fields made with :func:`setting`),
-    each defaulting to ``None`` ("not given")."""
+    each defaulting to ``None`` ("not given"); with ``from_recipe``, a preset's recipe gives the
+    defaults of the fields marked so (:func:`recipe`), and their help says so."""
     hints = get_type_hints(settings)
     groups = {}
     for f in fields(settings):
@@ -244,7 +269,7 @@ def add_setting_options(p: argparse.ArgumentParser, settings: type) -> None:
         kind = hints[f.name]
         extra = ({"action": argparse.BooleanOptionalAction} if kind is bool
                  else {"type": kind, "metavar": meta["metavar"]})
-        target.add_argument(flag_of(f), dest=f.name, default=None, help=_help(f), **extra)
+        target.add_argument(flag_of(f), dest=f.name, default=None, help=_help(f, from_recipe), **extra)
 
 
 def settings_from(args: argparse.Namespace, base):

@@ -96,6 +96,47 @@ def test_a_box_centre_projects_to_its_cell():
     assert codes[0, 6:].tolist() == pytest.approx([0.0, 1.0], abs=1e-6)   # heading along lidar x = camera z
 
 
+# ---------------------------------------------------------------- the settings
+
+# The settings record of a pretraining checkpoint written before the loop's settings were shared.
+EARLIER_TRAIN_RECORD = {"split": "sim-train", "version": "v1.0-sim", "seed": 0, "lr": 0.002, "weight_decay": 0.01,
+                        "warmup_frac": 0.05, "min_lr_ratio": 0.01, "grad_clip": 10.0, "batch_size": 2, "epochs": 10,
+                        "max_steps": 0, "workers": 0, "ckpt_minutes": 10.0, "save_every_steps": 0}
+
+
+def test_the_settings_are_the_loops_with_pretrainings_defaults_and_earlier_checkpoints_resume(micro, tmp_path):
+    """PretrainConfig is the loop's OptimConfig (each shared option the detector's, with its own
+    defaults and no recipe) plus its split; its flat record is the one earlier checkpoints hold,
+    which resume, and one that differs in a setting (not in bookkeeping) is refused, naming it."""
+    import argparse
+    from dataclasses import asdict, fields, replace
+
+    from clfbev.run.pretrain import PRETRAIN_FORMAT, PretrainConfig, _resume_checkpoint
+    from clfbev.run.train_config import OptimConfig, add_setting_options
+
+    assert issubclass(PretrainConfig, OptimConfig) and issubclass(TrainConfig, OptimConfig)
+    shared = {f.name: f for f in fields(TrainConfig)}
+    for f in fields(OptimConfig):
+        mine = next(g for g in fields(PretrainConfig) if g.name == f.name)
+        same = ("flag", "lo", "hi", "lo_open", "hi_open", "bookkeeping", "group", "metavar")
+        assert [mine.metadata[k] for k in same] == [shared[f.name].metadata[k] for k in same], f.name
+    assert asdict(PretrainConfig()) == EARLIER_TRAIN_RECORD
+    p = argparse.ArgumentParser()
+    add_setting_options(p, PretrainConfig)            # as `clfbev pretrain` makes its options
+    options = {a.dest: a for a in p._actions}
+    assert "[default 0.002, > 0]" in options["lr"].help and "[default 10," in options["epochs"].help
+    assert not any("recipe" in options[f.name].help for f in fields(PretrainConfig))
+
+    cfg = load_config(str(micro))
+    last = tmp_path / "last.pt"
+    torch.save({"format": PRETRAIN_FORMAT, "config": cfg.to_dict(), "train": EARLIER_TRAIN_RECORD}, last)
+    assert _resume_checkpoint(last, cfg, replace(PretrainConfig(), workers=2, ckpt_minutes=1.0), True)["train"] \
+        == EARLIER_TRAIN_RECORD
+    for name, value in (("lr", 1e-3), ("split", "sim-val"), ("batch_size", 1)):
+        with pytest.raises(CheckpointError, match=rf"differs in: {name}\)"):
+            _resume_checkpoint(last, cfg, replace(PretrainConfig(), **{name: value}), True)
+
+
 # ---------------------------------------------------------------- the run
 
 def test_pretraining_loss_falls(dense_data, micro, tmp_path):

@@ -19,7 +19,7 @@ import torch
 from clfbev.errors import ConfigError
 from clfbev.run.checkpoint import load_checkpoint, load_model
 from clfbev.run.epochs import epoch_batches
-from clfbev.run.train import lr_at
+from clfbev.run.loop import lr_at
 from clfbev.run.train_config import TrainConfig
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -86,6 +86,8 @@ def test_every_setting_has_one_generated_option_with_its_range(tmp_path):
     by_dest = {a.dest: a for a in p._actions}
     for f in fields(TrainConfig):
         assert flag_of(f) in by_dest[f.name].option_strings and by_dest[f.name].default is None, f.name
+        note = "[recipe" if f.metadata["recipe"] else f"[default {f.default!r}"
+        assert note in by_dest[f.name].help, f.name
     parse = lambda *a: train_config_from(p.parse_args(["--data", "d", "--out", "o", *a]))  # noqa: E731
     tc = parse("--min-lr-ratio", "0.1", "--precise-bn-batches", "0", "--save-every-steps", "5", "--no-gt-paste-balanced")
     assert (tc.min_lr_ratio, tc.precise_bn_batches, tc.save_every_steps, tc.gt_paste_balanced) == (0.1, 0, 5, False)
