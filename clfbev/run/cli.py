@@ -224,7 +224,7 @@ def _attention_model(args):
 def _attention_strip(args, model, token: str, width: int):
     """The MCM / BSM attention strip of sample ``token``, ``width`` pixels wide (BGR)."""
     ds = NuScenesDetection(args.data, args.version, "all", model.cfg.data_config())
-    batch = collate([ds[ds.sample_tokens.index(token)]]).to(_device())
+    batch = collate([ds[ds.sample_tokens.index(token)]], model.cfg).to(_device())
     return draw_attention(model, batch, width, args.score_thr, args.cell)
 
 
