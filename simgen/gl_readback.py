@@ -2,8 +2,8 @@
 directly, on EGL and on OSMesa alike.
 
 pyrender has no option for any of these, so :class:`simgen.camera.Renderer` patches its module
-function and its platform instance (its framebuffers and its EGL display's lifetime) and stands these readers in for its instance's
-``_read_main_framebuffer``.
+function and its platform instance (its framebuffers and its EGL display's lifetime) and stands
+these readers in for its instance's ``_read_main_framebuffer``.
 """
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ def framebuffers_on_osmesa(offscreen) -> None:
 
 
 def share_egl_display(offscreen) -> None:
-    """Let several ``OffscreenRenderer``\ s live in one process on EGL.
+    """Let several pyrender ``OffscreenRenderer`` objects live in one process on EGL.
 
     EGL hands every renderer of a device the same display, and pyrender's ``delete_context``
     terminates it, which invalidates every other renderer's context: the next one to make its

@@ -61,8 +61,9 @@ class EpochSamples(torch.utils.data.Dataset):
 def drop_sensors(sample: Sample, rng: np.random.Generator, p_lidar: float, p_camera: float) -> Sample:
     """Modality dropout: ``sample`` without its lidar (no points, nor pasted flags) with
     probability ``p_lidar``, else without its cameras (every one in ``camera_missing``: the
-    model's camera BEV of it is all zeros) with probability ``p_camera``; a sample always keeps one sensor. Two
-    draws from ``rng`` whatever the probabilities, so they never shift another stream."""
+    model's camera BEV of it is all zeros) with probability ``p_camera``; a sample always keeps
+    one sensor. Two draws from ``rng`` whatever the probabilities, so they never shift another
+    stream."""
     u_lidar, u_camera = rng.random(2)
     if u_lidar < p_lidar:
         pasted = None if sample.pasted is None else sample.pasted[:0]
