@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import math
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -139,6 +140,21 @@ class Batch:
             camera_missing=None if self.camera_missing is None else self.camera_missing.to(device),
             depth_bins=None if self.depth_bins is None else self.depth_bins.to(device),
         )
+
+    def select(self, index: list[int]) -> "Batch":
+        """The batch of the samples ``index`` (in that order): every stacked tensor indexed along
+        its batch dimension, every per-sample list picked; the tensors are views or copies, never
+        changed in place."""
+        picked = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, Tensor):
+                picked[f.name] = value[index]
+            elif isinstance(value, list) and value:
+                picked[f.name] = [value[i] for i in index]
+            else:
+                picked[f.name] = value      # None, or a list the batch does not fill (no pasted masks)
+        return Batch(**picked)
 
 
 def _tensor(a: np.ndarray) -> Tensor:

@@ -12,6 +12,8 @@
 #   lidar   clfbev train --variant lidar                                                  LIDAR_STEPS
 #   fusion  clfbev train --variant FUSION_VARIANT --lidar-init OUT/lidar/last.pt --camera-init
 #           OUT/camera/last.pt --image-freeze --feature-cache OUT/cache, modality dropout   FUSION_STEPS
+# and, once the fusion stage is done, OUT/experts.pt: the fused model with the camera and lidar
+# stages' models as its experts for a lost sensor (clfbev experts; evaluate it with --ckpt).
 # Everything resumes: rerun the same command after an interruption, kill -9 of its process group
 # included (kill -9 -PGID; a stage's training left running alone keeps OUT locked until it ends).
 # A done stage is skipped, an interrupted one continues from its last.pt (--resume; the cache
@@ -150,4 +152,11 @@ for s in "${SELECTED[@]}"; do
     exit $rc
   fi
 done
+# The fused model with the camera and lidar stages' models as its per-sensor experts (clfbev
+# experts): evaluated, a sample without any lidar point is answered by the camera stage's model,
+# one without any camera by the lidar stage's. Seconds; made again from the stages' weights.
+if [ "$(rec state "$OUT" fusion "$(settings fusion)")" = done ]; then
+  "$PY" -m clfbev experts --fused "$OUT/fusion/last.pt" --camera "$OUT/camera/last.pt" --lidar "$OUT/lidar/last.pt" \
+    --out "$OUT/experts.pt"
+fi
 rec report "$OUT"

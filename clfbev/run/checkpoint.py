@@ -62,17 +62,22 @@ def load_checkpoint(path: str | Path, required: tuple[str, ...] = REQUIRED) -> d
     """The checkpoint dict at ``path`` (on the CPU), loaded with ``weights_only=True``, holding at
     least the fields ``required``."""
     path = Path(path)
-    ckpt = read_torch(path)
+    return checked(read_torch(path), path, required)
+
+
+def checked(ckpt: object, where: str | Path, required: tuple[str, ...] = REQUIRED) -> dict:
+    """``ckpt`` if it is a checkpoint dict of this format holding the fields ``required``, of the
+    right kinds; else a CheckpointError naming ``where`` (the file, or a part of one)."""
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-        raise CheckpointError(f"checkpoint {path} is not a {FORMAT} file")
+        raise CheckpointError(f"checkpoint {where} is not a {FORMAT} file")
     missing = [k for k in required if k not in ckpt]
     if missing:
-        raise CheckpointError(f"checkpoint {path} lacks the fields {missing}")
-    _check_fields(ckpt, path)
+        raise CheckpointError(f"checkpoint {where} lacks the fields {missing}")
+    _check_fields(ckpt, where)
     return ckpt
 
 
-def _check_fields(ckpt: dict, path: Path) -> None:
+def _check_fields(ckpt: dict, path: str | Path) -> None:
     """Refuse fields of the wrong kind: the weights not a mapping of finite tensors, an unknown
     variant, a step or epoch that is not a count."""
     weights = ckpt["model"]
@@ -159,13 +164,18 @@ def load_model(path: str | Path, cfg: ModelConfig | None = None, variant: str | 
     """
     ckpt = load_checkpoint(path)
     check_matches(ckpt, path, cfg, variant)
-    model = CLFusionBEV(config_of(ckpt, path), ckpt["variant"])
+    return model_of(ckpt, path).to(device).eval(), ckpt
+
+
+def model_of(ckpt: dict, where: str | Path) -> CLFusionBEV:
+    """The model a :func:`checked` checkpoint dict holds (``where`` names it in errors)."""
+    model = CLFusionBEV(config_of(ckpt, where), ckpt["variant"])
     try:
         model.load_state_dict(ckpt["model"])
     except RuntimeError as e:
         first = str(e).strip().splitlines()[0]
-        raise CheckpointError(f"checkpoint {path}: weights do not fit its config ({first})") from None
-    return model.to(device).eval(), ckpt
+        raise CheckpointError(f"checkpoint {where}: weights do not fit its config ({first})") from None
+    return model
 
 
 class Checkpoints:

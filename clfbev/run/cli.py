@@ -40,6 +40,7 @@ from clfbev.run import robustness
 from clfbev.run.attention_plot import draw_attention
 from clfbev.run.attention_query import attention_modules
 from clfbev.run.checkpoint import load_model
+from clfbev.run.experts_file import assemble, load_predictor
 from clfbev.run.efficientnet_init import EFFICIENTNET_LITE0
 from clfbev.run.evaluate import EVAL_SCORE_THR, evaluate_model, predict_split, write_results
 from clfbev.run.image_init import camera_fields, init_camera_encoder, resolve_image_init
@@ -74,9 +75,10 @@ def _device():
 
 
 def _load(args):
-    """(model, checkpoint) of --ckpt, refused unless of --config / --variant where given."""
+    """(model, record) of --ckpt (a checkpoint or an experts file), refused unless of --config /
+    --variant where given."""
     cfg = load_config(args.config) if args.config else None
-    return load_model(args.ckpt, cfg, args.variant, device=_device())
+    return load_predictor(args.ckpt, cfg, args.variant, device=_device())
 
 
 # ---------------------------------------------------------------- commands
@@ -130,6 +132,16 @@ def cmd_cache_features(args) -> None:
     print(f"cached the features of {counts['images']} images of {len(ds)} samples ({counts['computed']} computed, "
           f"{counts['kept']} already there) of the encoder {started} in {args.out}; "
           f"clfbev train --image-init {args.image_init} --image-freeze --feature-cache {args.out}")
+
+
+def cmd_experts(args) -> None:
+    """Assemble the sensor experts' file --out from the fused, camera and lidar checkpoints."""
+    check_writable(args.out, is_file=True)
+    paths = {role: path for role, path in (("fused", args.fused), ("camera", args.camera), ("lidar", args.lidar))
+             if path is not None}
+    experts = assemble(paths, args.out)
+    roles = ", ".join(f"{role} {path}" for role, path in paths.items())
+    print(f"wrote the {experts.variant} model ({roles}) to {args.out}; clfbev eval --ckpt {args.out}")
 
 
 def cmd_eval(args) -> None:
@@ -214,7 +226,9 @@ def _attention_model(args):
     --attention asks for a picture that such a variant cannot give, so it is refused, not skipped."""
     if not args.ckpt:
         raise ConfigError("--attention needs --ckpt (the model whose attention is drawn)")
-    model, _ = _load(args)
+    # A training checkpoint: an experts file holds three models and draws no single attention.
+    model, _ = load_model(args.ckpt, load_config(args.config) if args.config else None, args.variant,
+                          device=_device())
     if not attention_modules(model):
         raise ConfigError(f"--attention: {args.ckpt} is of variant '{model.variant}', which has no MCM or BSM "
                           "attention (the 'mcm' and 'full' variants have)")
@@ -344,6 +358,24 @@ def _add_cache_features(sub) -> None:
     p.set_defaults(fn=cmd_cache_features)
 
 
+def _add_experts(sub) -> None:
+    p = sub.add_parser(
+        "experts", help="one model of a fused checkpoint and its camera-only and lidar-only experts",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Write one file holding a fused model (concat, mcm or full) and a camera-only and a lidar-only "
+        "model beside it, as the staged recipe trains them. Evaluated, each sample is answered by the model whose "
+        "sensors delivered: no lidar point at all -> the camera expert; every camera missing -> the lidar expert; "
+        "else the fused model (MoME's per-sensor experts, the router a rule on the sensors' presence). "
+        "`clfbev eval`, `predict` and `robustness` take the file as --ckpt.\n\n"
+        "  clfbev experts --fused STAGED/fusion/last.pt --camera STAGED/camera/last.pt "
+        "--lidar STAGED/lidar/last.pt --out STAGED/experts.pt")
+    p.add_argument("--fused", required=True, type=Path, help="checkpoint of a concat, mcm or full run")
+    p.add_argument("--camera", type=Path, default=None, help="checkpoint of a camera run (same classes and loader)")
+    p.add_argument("--lidar", type=Path, default=None, help="checkpoint of a lidar run (same classes and loader)")
+    p.add_argument("--out", required=True, type=Path, help="the experts file to write")
+    p.set_defaults(fn=cmd_experts)
+
+
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="official nuScenes DetectionEval of a checkpoint on a split",
                        description="Predict a split, write results.json (nuScenes submission format) and run the "
@@ -410,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="clfbev", description="CL-FusionBEV: camera + lidar BEV fusion detector "
                                  "(train, evaluate with the official nuScenes metrics, predict, visualise).")
     sub = ap.add_subparsers(dest="command", required=True)
-    for add in (_add_train, _add_pretrain, _add_cache_features, _add_eval, _add_robustness, _add_predict, _add_show):
+    for add in (_add_train, _add_pretrain, _add_cache_features, _add_experts, _add_eval, _add_robustness, _add_predict, _add_show):
         add(sub)
     return ap
 

@@ -26,7 +26,7 @@ from clfbev import io
 from clfbev.corruptions import Corruption
 from clfbev.data import NuScenesDetection
 from clfbev.errors import ConfigError, DataError
-from clfbev.run.checkpoint import load_model
+from clfbev.run.experts_file import load_predictor
 from clfbev.run.evaluate import evaluate_model
 
 PAIRED_TABLES = ("sample_annotation", "instance", "sample", "ego_pose")
@@ -126,7 +126,7 @@ def run(ckpts: list[tuple[str, Path]], conditions: list[Condition], out: Path, s
     record = {"split": split, "conditions": [c.name for c in conditions], "clean": conditions[0].name,
               "fog_severity": {c.name: c.fog_severity for c in conditions}, "models": {}}
     for name, path in ckpts:
-        model, ckpt = load_model(path)
+        model, ckpt = load_predictor(path)
         entry = {"checkpoint": str(path), "variant": ckpt["variant"], "metrics": {}}
         for cond in conditions:
             ds = NuScenesDetection(cond.dataroot, version, split, model.cfg.data_config(), cond.corruptions)

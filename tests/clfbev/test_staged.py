@@ -22,6 +22,7 @@ import torch
 from clfbev.camera_encoder import CameraEncoder
 from clfbev.config_file import load_config
 from clfbev.run.checkpoint import load_checkpoint
+from clfbev.run.experts_file import load_predictor
 from clfbev.run import train as train_module
 from clfbev.run.image_init import save_encoder
 from clfbev.run.train_config import TrainConfig
@@ -214,4 +215,9 @@ def test_a_recipe_killed_inside_each_stage_ends_with_the_uninterrupted_weights(t
         assert (a / "cache" / name).read_bytes() == (b / "cache" / name).read_bytes()
     stages = record(b)["stages"]
     assert all(stages[s]["done"] and len(stages[s]["parts"]) >= 2 for s in RECIPE_STAGES)
+    # The experts file holds exactly the three stages' weights.
+    experts, _ = load_predictor(b / "experts.pt")
+    for role, stage in (("fused", "fusion"), ("camera", "camera"), ("lidar", "lidar")):
+        weights = load_checkpoint(b / stage / "last.pt")["model"]
+        assert all(torch.equal(weights[k], v) for k, v in experts.expert(role).state_dict().items()), role
     assert record(b)["cpu_s"] > 0 and "in all:" in last.stdout
