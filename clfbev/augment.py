@@ -121,7 +121,8 @@ def crop_to_range(sample: Sample, point_range: tuple[float, ...]) -> Sample:
     keep_b = ((sample.gt_boxes[:, :3] >= lo) & (sample.gt_boxes[:, :3] < hi)).all(axis=1)
     pasted = None if sample.pasted is None else sample.pasted[keep_p]
     return replace(sample, points=sample.points[keep_p], gt_boxes=sample.gt_boxes[keep_b],
-                   gt_labels=sample.gt_labels[keep_b], pasted=pasted)
+                   gt_labels=sample.gt_labels[keep_b], pasted=pasted,
+                   gt_still=None if sample.gt_still is None else sample.gt_still[keep_b])
 
 
 def shuffle_points(sample: Sample, rng: np.random.Generator) -> Sample:

@@ -170,7 +170,8 @@ class ModelConfig:
                 raise ConfigError(f"{name} must be > 0, got {values}")
         non_negative = {"heading_from_motion": self.heading_from_motion, "velocity_beta": self.velocity_beta,
                         "velocity_weight": self.velocity_weight, "loss.depth_range_power": self.loss.depth_range_power,
-                        "cam_heatmap": self.cam_heatmap, "cam_distill": self.cam_distill}
+                        "cam_heatmap": self.cam_heatmap, "cam_distill": self.cam_distill,
+                        "loss.attribute": self.loss.attribute}
         for name, value in non_negative.items():
             if not value >= 0:
                 raise ConfigError(f"{name} must be >= 0, got {value}")

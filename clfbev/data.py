@@ -40,6 +40,7 @@ from pyquaternion import Quaternion
 from torch import Tensor
 
 from clfbev import corruptions
+from clfbev.attributes import still_state
 from clfbev.errors import DataError
 from clfbev.geometry import batch_depth_bins
 from clfbev.sensor_files import IMAGE_MEAN, IMAGE_STD, load_image, load_points, resize_and_crop
@@ -69,6 +70,9 @@ class Sample:
     image_features : (N, fpn_ch, h, w) float32 the frozen image encoder's FPN features of the
         network images, read from a feature cache (:mod:`clfbev.feature_cache`; ``images`` is then
         (N, 3, 0, 0): no pixel is decoded), or None.
+    gt_still : (M,) int64 the still state of each box (:mod:`clfbev.attributes`: 0 or 1, which of
+        its class's two attributes at rest), -1 where it has none to learn (a moving vehicle or
+        walker, a cone, a pasted object), or None (no box's is known).
     camera_missing : (N,) bool the cameras that delivered nothing (modality dropout in training,
         ``camera_crash`` and ``frame_lost`` at evaluation), or None (all delivered): the model
         lifts nothing from them, and a sample without any camera gets an all-zero camera BEV
@@ -87,6 +91,7 @@ class Sample:
     pasted: np.ndarray | None = None
     image_features: np.ndarray | None = None
     camera_missing: np.ndarray | None = None
+    gt_still: np.ndarray | None = None
 
 
 @dataclass
@@ -98,6 +103,7 @@ class Batch:
     img_aug : (B, N, 3, 3).  T_global_from_lidar : (B, 4, 4) float64.
     points : list of B (n_i, 5).  gt_boxes : list of B (M_i, 9).  gt_labels : list of B (M_i,).
     sample_tokens : list of B str.  pasted : list of B (n_i,) bool or None (see :class:`Sample`).
+    gt_still : list of B (M_i,) int64 (-1 where :class:`Sample` has None).
     image_features : (B, N, fpn_ch, h, w) float32 or None.  camera_missing : (B, N) bool or None
     (every camera delivered).
     depth_bins : (B, N, H / s, W / s) int64 per camera feature cell (stride s =
@@ -122,6 +128,7 @@ class Batch:
     image_features: Tensor | None = None
     camera_missing: Tensor | None = None
     depth_bins: Tensor | None = None
+    gt_still: list[Tensor] = field(default_factory=list)
 
     def to(self, device: torch.device | str) -> "Batch":
         """A copy with every tensor on ``device`` (tokens are shared)."""
@@ -139,6 +146,7 @@ class Batch:
             image_features=None if self.image_features is None else self.image_features.to(device),
             camera_missing=None if self.camera_missing is None else self.camera_missing.to(device),
             depth_bins=None if self.depth_bins is None else self.depth_bins.to(device),
+            gt_still=[s.to(device) for s in self.gt_still],
         )
 
     def select(self, index: list[int]) -> "Batch":
@@ -182,6 +190,8 @@ def collate(samples: list[Sample], model_cfg=None) -> Batch:
         camera_missing=(None if all(s.camera_missing is None for s in samples) else
                         torch.from_numpy(np.stack([np.zeros(len(s.intrinsics), bool) if s.camera_missing is None
                                                    else s.camera_missing for s in samples]))),
+        gt_still=[torch.full((len(s.gt_boxes),), -1, dtype=torch.int64) if s.gt_still is None
+                  else _tensor(s.gt_still) for s in samples],
     )
     if model_cfg is not None and model_cfg.cam_oracle_depth:
         batch.depth_bins = batch_depth_bins(batch, model_cfg)
@@ -341,7 +351,7 @@ class NuScenesDetection(torch.utils.data.Dataset):
                 images, T_lidar_from_cam, K, A, up_lidar, corruptions.camera_corruptions(self.corruptions),
                 sample["token"])
             missing = missing if missing.any() else None
-        boxes, labels = self._boxes(sample, T_lidar_from_global)
+        boxes, labels, still = self._boxes(sample, T_lidar_from_global)
         return Sample(
             images=images,
             intrinsics=K.astype(np.float32),
@@ -353,6 +363,7 @@ class NuScenesDetection(torch.utils.data.Dataset):
             T_global_from_lidar=T_global_from_lidar,
             sample_token=sample["token"],
             camera_missing=missing,
+            gt_still=still,
         )
 
     def lidar_and_boxes(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -365,7 +376,7 @@ class NuScenesDetection(torch.utils.data.Dataset):
         lidar_sd = self.nusc.get("sample_data", sample["data"][LIDAR])
         T_lidar_from_global = np.linalg.inv(self._T_global_from_sensor(lidar_sd))
         points, _ = self._points(lidar_sd, T_lidar_from_global)
-        boxes, labels = self._boxes(sample, T_lidar_from_global)
+        boxes, labels, _ = self._boxes(sample, T_lidar_from_global)
         return points, boxes, labels
 
     # ------------------------------------------------------------ the tables' records, checked
@@ -452,12 +463,13 @@ class NuScenesDetection(torch.utils.data.Dataset):
         keep = ((pts[:, :3] >= lo) & (pts[:, :3] < hi)).all(axis=1)
         return np.ascontiguousarray(pts[keep]), np.concatenate(rings)[keep]
 
-    def _boxes(self, sample: dict, T_lidar_from_global: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """gt_boxes (M, 9) float32 and gt_labels (M,) int64 in the key-frame lidar frame."""
+    def _boxes(self, sample: dict, T_lidar_from_global: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """gt_boxes (M, 9) float32 and gt_labels (M,) int64 in the key-frame lidar frame, and
+        gt_still (M,) int64 (:class:`Sample`)."""
         from nuscenes.eval.detection.utils import category_to_detection_name
         label_of = {name: i for i, name in enumerate(self.cfg.class_names)}
         R_lidar_from_global = T_lidar_from_global[:3, :3]
-        boxes, labels = [], []
+        boxes, labels, still = [], [], []
         for token in sample["anns"]:
             ann = self.nusc.get("sample_annotation", token)
             name = category_to_detection_name(self._field("sample_annotation", ann, "category_name"))
@@ -470,11 +482,14 @@ class NuScenesDetection(torch.utils.data.Dataset):
             v_lidar = R_lidar_from_global @ velocity
             boxes.append(np.concatenate([box, v_lidar[:2]]))
             labels.append(label_of[name])
+            attributes = [self.nusc.get("attribute", t)["name"]
+                          for t in self._field("sample_annotation", ann, "attribute_tokens")]
+            still.append(max((still_state(name, a) for a in attributes), default=-1))
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 9)
         labels = np.asarray(labels, dtype=np.int64)
         lo, hi = np.asarray(self.cfg.point_range[:3]), np.asarray(self.cfg.point_range[3:])
         keep = ((boxes[:, :3] >= lo) & (boxes[:, :3] < hi)).all(axis=1)
-        return boxes[keep].astype(np.float32), labels[keep]
+        return boxes[keep].astype(np.float32), labels[keep], np.asarray(still, dtype=np.int64)[keep]
 
     def _velocity(self, token: str) -> np.ndarray:
         """(3,) the devkit's velocity of annotation ``token`` (global, m/s; NaN where unknown),

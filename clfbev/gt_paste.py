@@ -150,9 +150,11 @@ def gt_paste(sample: Sample, db: GTDatabase, n: int, rng: np.random.Generator, b
     new_pts = np.concatenate([pts[keep], *[db.points[i] for i in chosen]]).astype(pts.dtype)
     was_pasted = np.zeros(len(pts), bool) if sample.pasted is None else sample.pasted
     pasted = np.concatenate([was_pasted[keep], np.ones(len(new_pts) - int(keep.sum()), bool)])
+    # A pasted object's still state is not kept in the database: it trains no attribute (-1).
+    still = None if sample.gt_still is None else np.concatenate([sample.gt_still, np.full(len(chosen), -1)])
     return replace(sample, points=new_pts, pasted=pasted,
                    gt_boxes=np.concatenate([sample.gt_boxes, db.boxes[chosen]]).astype(sample.gt_boxes.dtype),
-                   gt_labels=np.concatenate([sample.gt_labels, db.labels[chosen]]))
+                   gt_labels=np.concatenate([sample.gt_labels, db.labels[chosen]]), gt_still=still)
 
 
 def _free_objects(db: GTDatabase, order: np.ndarray, boxes: np.ndarray, lag: float, n: int) -> list[int]:

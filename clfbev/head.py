@@ -48,12 +48,15 @@ class FlatPredictions:
     box_deltas : (B, N, code_size) residuals.
     dir_logits : (B, N, n_dir_bins).
     moving_logits : (B, N) the velocity gate's logit (the box moves), or None without a gate.
+    still_logits : (B, N) the logit of still state 1 (:mod:`clfbev.attributes`), or None without
+        that head.
     """
 
     cls_logits: Tensor
     box_deltas: Tensor
     dir_logits: Tensor
     moving_logits: Tensor | None = None
+    still_logits: Tensor | None = None
 
 
 def _flatten_map(x: Tensor, n_anchors: int) -> Tensor:
@@ -61,6 +64,11 @@ def _flatten_map(x: Tensor, n_anchors: int) -> Tensor:
     b, c, h, w = x.shape
     k = c // n_anchors
     return x.reshape(b, n_anchors, k, h, w).permute(0, 3, 4, 1, 2).reshape(b, h * w * n_anchors, k)
+
+
+def per_anchor(x: Tensor | None, n_anchors: int) -> Tensor | None:
+    """(B, A, H, W) one value per anchor -> (B, H * W * A); None stays None."""
+    return None if x is None else _flatten_map(x, n_anchors)[..., 0]
 
 
 def pointwise(conv: nn.Conv2d, x: Tensor) -> Tensor:
@@ -80,20 +88,23 @@ class HeadOutput:
     box_deltas : (B, A * code_size, H, W).
     dir_logits : (B, A * n_dir_bins, H, W).
     moving_logits : (B, A, H, W) the velocity gate's logits, or None without a gate.
+    still_logits : (B, A, H, W) the still-state logits (:mod:`clfbev.attributes`), or None.
     """
 
     cls_logits: Tensor
     box_deltas: Tensor
     dir_logits: Tensor
     moving_logits: Tensor | None = None
+    still_logits: Tensor | None = None
 
     def flatten(self) -> FlatPredictions:
         n_anchors = self.cls_logits.shape[1]
         return FlatPredictions(
-            cls_logits=_flatten_map(self.cls_logits, n_anchors)[..., 0],
+            cls_logits=per_anchor(self.cls_logits, n_anchors),
             box_deltas=_flatten_map(self.box_deltas, n_anchors),
             dir_logits=_flatten_map(self.dir_logits, n_anchors),
-            moving_logits=None if self.moving_logits is None else _flatten_map(self.moving_logits, n_anchors)[..., 0],
+            moving_logits=per_anchor(self.moving_logits, n_anchors),
+            still_logits=per_anchor(self.still_logits, n_anchors),
         )
 
 
@@ -171,6 +182,9 @@ class AnchorHead(nn.Module):
     velocity_detach : the tower reads the BEV features without sending its gradient back into
         them, so the velocity loss cannot reshape the features the boxes are read from.
     velocity_gate : the tower also predicts whether each box moves (:class:`VelocityTower`).
+    still_head : also a 1x1 convolution giving each anchor its still logit: which of its class's
+        two states at rest the object is in (:mod:`clfbev.attributes`; parked or stopped, with
+        or without a rider).
     """
 
     def __init__(
@@ -185,6 +199,7 @@ class AnchorHead(nn.Module):
         motion_ch: int = 0,
         velocity_detach: bool = False,
         velocity_gate: bool = False,
+        still_head: bool = False,
     ) -> None:
         super().__init__()
         if velocity_tower and code_size != 9:
@@ -200,9 +215,12 @@ class AnchorHead(nn.Module):
         self.velocity = (VelocityTower(in_ch + motion_ch, n_anchors, velocity_tower, velocity_gate)
                          if velocity_tower else None)
         self.velocity_detach = velocity_detach
+        self.conv_still = nn.Conv2d(in_ch, n_anchors, 1) if still_head else None
         # Small weights: the first residuals are ~0 (boxes start at the anchors) and the first
         # scores ~prior_prob everywhere.
-        for conv in (self.conv_cls, self.conv_box, self.conv_dir):
+        for conv in (self.conv_cls, self.conv_box, self.conv_dir, self.conv_still):
+            if conv is None:
+                continue
             nn.init.normal_(conv.weight, std=0.01)
             nn.init.zeros_(conv.bias)
         nn.init.constant_(self.conv_cls.bias, -math.log((1.0 - prior_prob) / prior_prob))
@@ -223,7 +241,8 @@ class AnchorHead(nn.Module):
             box = box.view(b, h, w, n_anchors * 9).permute(0, 3, 1, 2)
             if k == 3:
                 moving = tower[..., 2].permute(0, 3, 1, 2)
-        return HeadOutput(pointwise(self.conv_cls, bev), box, pointwise(self.conv_dir, bev), moving)
+        still = None if self.conv_still is None else pointwise(self.conv_still, bev)
+        return HeadOutput(pointwise(self.conv_cls, bev), box, pointwise(self.conv_dir, bev), moving, still)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -232,18 +251,20 @@ class AnchorHead(nn.Module):
 
 
 class Detections(NamedTuple):
-    """Detections of one sample, sorted by descending score (a NamedTuple, so it unpacks as
+    """Detections of one sample, sorted by descending score (a NamedTuple: ``dets[:3]`` is
     ``boxes, scores, labels``).
 
     boxes : (K, code_size) ``(x, y, z, l, w, h, yaw, vx, vy)``, lidar frame, yaw in
         ``[dir_offset, dir_offset + 2 pi)``.
     scores : (K,) sigmoid scores.
     labels : (K,) int64 class indices (0-based).
+    still : (K,) the still-state logits (:mod:`clfbev.attributes`), or None without that head.
     """
 
     boxes: Tensor
     scores: Tensor
     labels: Tensor
+    still: Tensor | None = None
 
 
 def correct_direction(yaw: Tensor, dir_bin: Tensor, dir_offset: float = DIR_OFFSET, n_bins: int = 2) -> Tensor:
@@ -287,6 +308,7 @@ def decode(
     heading_speed: float = 0.0,
     moving_logits: Tensor | None = None,
     heading_follow: tuple[int, ...] = (),
+    still_logits: Tensor | None = None,
 ) -> list[Detections]:
     """Head maps -> boxes in the lidar frame, per sample.
 
@@ -309,12 +331,13 @@ def decode(
         above ``heading_speed`` (the others' is only turned by pi).
     moving_logits : (B, A, H, W) the velocity gate's logits, or None: where given, a box whose
         gate says still (logit < 0) gets velocity 0, whatever was regressed.
+    still_logits : (B, A, H, W) the still-state logits, or None: each box keeps its anchor's.
 
     Returns
     -------
     B Detections.
     """
-    flat = HeadOutput(cls_logits, box_deltas, dir_logits, moving_logits).flatten()
+    flat = HeadOutput(cls_logits, box_deltas, dir_logits, moving_logits, still_logits).flatten()
     flat_anchors = anchors.reshape(-1, 7).to(box_deltas.dtype)
     class_ids = anchor_class_ids(anchors)
     n_bins = flat.dir_logits.shape[-1]
@@ -345,5 +368,6 @@ def decode(
         kept_idx = torch.cat(kept)
         order = torch.sort(top_scores[kept_idx], descending=True, stable=True).indices[:max_per_sample]
         kept_idx = kept_idx[order]
-        results.append(Detections(boxes[kept_idx], top_scores[kept_idx], labels[kept_idx]))
+        still = None if flat.still_logits is None else flat.still_logits[b, top[kept_idx]]
+        results.append(Detections(boxes[kept_idx], top_scores[kept_idx], labels[kept_idx], still))
     return results

@@ -168,7 +168,7 @@ class CLFusionBEV(nn.Module):
         self.motion_ch = cfg.sweep_channels if uses_lidar and cfg.velocity_tower else 0
         self.head = AnchorHead(self.backbone.out_channels, len(cfg.class_names), len(cfg.anchor_rotations),
                                cfg.code_size, cfg.n_dir_bins, cfg.prior_prob, cfg.velocity_tower, self.motion_ch,
-                               cfg.velocity_detach, cfg.velocity_gate)
+                               cfg.velocity_detach, cfg.velocity_gate, still_head=cfg.loss.attribute > 0)
         # For decoding; the training targets take theirs from the config (clfbev.supervision.targets).
         anchors = make_anchors(cfg.class_names, cfg.head_feature_size, cfg.pc_range, cfg.anchor_rotations)
         self.register_buffer("anchors", anchors, persistent=False)  # (ny, nx, n_cls, n_rot, 7)
@@ -259,6 +259,7 @@ class CLFusionBEV(nn.Module):
             max_per_sample=cfg.max_per_sample if max_per_sample is None else max_per_sample,
             pre_nms=cfg.pre_nms, heading_speed=cfg.heading_from_motion, moving_logits=out.moving_logits,
             heading_follow=tuple(cfg.class_names.index(c) for c in cfg.heading_follow_classes),
+            still_logits=out.still_logits,
         )
 
 

@@ -72,6 +72,11 @@ class LossWeights:
     semantic : weight of the camera's perspective class loss
         (:mod:`clfbev.supervision.perspective`); 0 (the default) builds no perspective head.
         Unused by the ``lidar`` variant.
+    attribute : weight of the still-state loss (a binary cross-entropy of the head's still
+        logit on the positive anchors whose object rests in one of its class's two still
+        states: stopped or parked, standing or sitting, with or without a rider;
+        :mod:`clfbev.attributes`); 0 (the default) builds no still head, and a box at rest takes
+        its class's common state.
     code_weights : per residual ``(dx, dy, dz, dl, dw, dh, dtheta, vx, vy)``; velocity is
         down-weighted (0.2) because it is noisy (from a few sweeps) and would otherwise pull
         the shared features away from localisation early in training.
@@ -85,6 +90,7 @@ class LossWeights:
     depth: float = 3.0
     depth_range_power: float = 0.0
     semantic: float = 0.0
+    attribute: float = 0.0
     code_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.2, 0.2)
     focal_alpha: float = 0.25
     focal_gamma: float = 2.0

@@ -4,9 +4,11 @@ The two packages never import each other (tests/test_layout.py), so a rule both 
 twice: once where the generator labels its data, once where the detector reads or scores it.
 These tests feed both copies the same inputs and require the same answers.
 
-- The attribute speed thresholds: simgen labels an object moving above a class's threshold
-  (``simgen.labels.attribute``); clfbev derives the attribute of a detection from its predicted
-  speed with the same thresholds (``clfbev.run.evaluate.attribute_for``).
+- The attributes: simgen labels an object moving above a class's threshold, and at rest by
+  its state (parked or stopped, with or without a rider: ``simgen.labels.attribute``); clfbev
+  derives the attribute of a detection from its predicted speed with the same thresholds and
+  from its still logit with the same names for the states at rest
+  (``clfbev.attributes.attribute_for``).
 - The sector filter: simgen's ``fov`` degradation (``simgen.degrade.keep_sector``) and clfbev's
   ``fov`` corruption (``clfbev.corruptions.corrupt_points``) keep the same points.
 - The detection classes: every class simgen makes is written under a category that the
@@ -21,7 +23,7 @@ import numpy as np
 import pytest
 
 from clfbev.corruptions import Corruption, corrupt_points
-from clfbev.run.evaluate import attribute_for
+from clfbev.attributes import attribute_for
 from clfbev.settings import DETECTION_CLASSES
 from simgen import degrade, labels, world
 
@@ -39,39 +41,48 @@ def simgen_actor(cls: str, parked: bool = False, rider: bool = True) -> SimpleNa
     return SimpleNamespace(cls=cls, parked=parked, rider=rider)
 
 
+# The still logit of each still state (clfbev.attributes): state 0 below 0, state 1 at or above.
+STATE_0, STATE_1 = -5.0, 5.0
+
+
 @pytest.mark.parametrize("speed", speed_grid())
 def test_a_pedestrian_gets_the_same_attribute(speed):
-    assert labels.attribute(simgen_actor("pedestrian"), speed) == attribute_for("pedestrian", speed)
+    simgen = labels.attribute(simgen_actor("pedestrian"), speed)
+    assert simgen == attribute_for("pedestrian", speed) == attribute_for("pedestrian", speed, STATE_0)
 
 
 @pytest.mark.parametrize("cls", world.VEHICLES)
 @pytest.mark.parametrize("speed", speed_grid())
-def test_a_vehicle_moves_above_the_same_speed(cls, speed):
-    """A driving vehicle is `vehicle.moving` in both above the same threshold. Below it simgen
-    writes `vehicle.stopped` (it knows the car is in traffic) where clfbev, which sees only the
-    speed, says `vehicle.parked`: the name of the still state is not the copied rule."""
-    simgen_moving = labels.attribute(simgen_actor(cls), speed) == "vehicle.moving"
-    clfbev_moving = attribute_for(cls, speed) == "vehicle.moving"
-    assert simgen_moving == clfbev_moving
+def test_a_driving_vehicle_gets_the_same_attribute_in_still_state_0(cls, speed):
+    """Above the same threshold `vehicle.moving` in both; below it simgen writes
+    `vehicle.stopped` (the car is in traffic), which is clfbev's still state 0. Without a still
+    head clfbev says `vehicle.parked`, the common state."""
+    simgen = labels.attribute(simgen_actor(cls), speed)
+    assert simgen == attribute_for(cls, speed, STATE_0)
+    assert attribute_for(cls, speed) == ("vehicle.moving" if simgen == "vehicle.moving" else "vehicle.parked")
 
 
 @pytest.mark.parametrize("cls", world.VEHICLES)
 def test_a_parked_vehicle_is_parked_in_both(cls):
-    assert labels.attribute(simgen_actor(cls, parked=True), 0.0) == attribute_for(cls, 0.0) == "vehicle.parked"
+    assert labels.attribute(simgen_actor(cls, parked=True), 0.0) == attribute_for(cls, 0.0, STATE_1) == \
+        attribute_for(cls, 0.0) == "vehicle.parked"
 
 
 @pytest.mark.parametrize("cls", world.CYCLES)
-def test_a_cycle_gets_the_same_attribute_when_ridden_and_moving_or_parked(cls):
-    """simgen names a cycle's attribute by its rider, clfbev by the speed, with simgen's moving
-    threshold: they agree on a ridden cycle faster than the threshold and on a parked riderless
-    one. (A ridden cycle braking below the threshold is `with_rider` in simgen and
-    `without_rider` in clfbev: the detector cannot see the rider.)"""
-    fastest_still = labels.MOVING_SPEED.get(cls, labels.DEFAULT_MOVING_SPEED)
-    for speed in (float(np.nextafter(fastest_still, np.inf)), 1.0, 8.0):
-        assert labels.attribute(simgen_actor(cls), speed) == attribute_for(cls, speed) == "cycle.with_rider"
+@pytest.mark.parametrize("speed", speed_grid())
+def test_a_ridden_cycle_is_with_rider_in_both_at_any_speed(cls, speed):
+    """simgen names a cycle's attribute by its rider; clfbev gives a moving cycle its rider (above
+    simgen's moving threshold) and a still one still state 0 (with rider) or 1 (without)."""
+    assert labels.attribute(simgen_actor(cls), speed) == attribute_for(cls, speed, STATE_0) == "cycle.with_rider"
+
+
+@pytest.mark.parametrize("cls", world.CYCLES)
+def test_a_parked_cycle_is_without_rider_in_both(cls):
     parked = simgen_actor(cls, parked=True, rider=False)
-    assert labels.attribute(parked, 0.0) == attribute_for(cls, 0.0) == "cycle.without_rider"
-    assert attribute_for(cls, fastest_still) == "cycle.without_rider"
+    assert labels.attribute(parked, 0.0) == attribute_for(cls, 0.0, STATE_1) == attribute_for(cls, 0.0) == \
+        "cycle.without_rider"
+    fastest_still = labels.MOVING_SPEED.get(cls, labels.DEFAULT_MOVING_SPEED)
+    assert attribute_for(cls, float(np.nextafter(fastest_still, np.inf)), STATE_1) == "cycle.with_rider"
 
 
 @pytest.mark.parametrize("cls", ["traffic_cone", "barrier"])

@@ -26,35 +26,21 @@ import numpy as np
 import torch
 
 from clfbev import io
+from clfbev.attributes import attribute_for
 from clfbev.data import Batch, NuScenesDetection, box_lidar_to_global, collate, split_scene_names
 from clfbev.errors import DataError
 
 MAX_PER_SAMPLE = 500          # the devkit's max_boxes_per_sample: it rejects a file with more
-VEHICLES = {"car", "truck", "bus", "trailer", "construction_vehicle"}
-CYCLES = {"bicycle", "motorcycle"}
-VEHICLE_MOVING_SPEED = 0.3    # m/s
-PEDESTRIAN_MOVING_SPEED = 0.2  # m/s
-CYCLE_MOVING_SPEED = 0.3      # m/s
 DEFAULT_META = {"use_camera": True, "use_lidar": True, "use_radar": False, "use_map": False, "use_external": False}
-
-
-def attribute_for(name: str, speed: float) -> str:
-    """The nuScenes attribute of a ``name`` box moving at ``speed`` m/s ('' for cones/barriers)."""
-    if name in VEHICLES:
-        return "vehicle.moving" if speed > VEHICLE_MOVING_SPEED else "vehicle.parked"
-    if name == "pedestrian":
-        return "pedestrian.moving" if speed > PEDESTRIAN_MOVING_SPEED else "pedestrian.standing"
-    if name in CYCLES:
-        # A moving two-wheeler has a rider; a still one is most likely parked without one.
-        return "cycle.with_rider" if speed > CYCLE_MOVING_SPEED else "cycle.without_rider"
-    return ""
 
 
 def detections_to_results(dets, sample_tokens, T_global_from_lidar, class_names) -> dict[str, list[dict]]:
     """Per-sample detections (lidar frame) -> ``{sample_token: [nuScenes result dict, ...]}``.
 
-    dets : sequence of ``Detections`` (or ``(boxes (K, 9), scores (K,), labels (K,))``): boxes
-        ``x, y, z, l, w, h, yaw, vx, vy`` in each sample's key-frame lidar frame.
+    dets : sequence of ``Detections`` (or ``(boxes (K, 9), scores (K,), labels (K,)[, still
+        (K,) logits or None])``): boxes ``x, y, z, l, w, h, yaw, vx, vy`` in each sample's
+        key-frame lidar frame; the attribute from the speed and the still logit where given
+        (:func:`clfbev.attributes.attribute_for`).
     sample_tokens : one token per entry of ``dets``.
     T_global_from_lidar : one (4, 4) transform per entry (tensor or array, float64 preferred).
     class_names : label -> detection name.
@@ -63,7 +49,10 @@ def detections_to_results(dets, sample_tokens, T_global_from_lidar, class_names)
     if not (len(dets) == len(sample_tokens) == len(T_global_from_lidar)):
         raise ValueError(f"got {len(dets)} detections, {len(sample_tokens)} tokens, {len(T_global_from_lidar)} transforms")
     results: dict[str, list[dict]] = {}
-    for (boxes, scores, labels), token, T in zip(dets, sample_tokens, T_global_from_lidar):
+    for det, token, T in zip(dets, sample_tokens, T_global_from_lidar):
+        boxes, scores, labels = det[:3]
+        still = det[3] if len(det) > 3 and det[3] is not None else None
+        still = None if still is None else np.asarray(torch.as_tensor(still).detach().cpu(), dtype=np.float64)
         T = np.asarray(torch.as_tensor(T, dtype=torch.float64).cpu())
         boxes = np.asarray(torch.as_tensor(boxes).detach().cpu(), dtype=np.float64)
         scores = np.asarray(torch.as_tensor(scores).detach().cpu(), dtype=np.float64)
@@ -84,7 +73,8 @@ def detections_to_results(dets, sample_tokens, T_global_from_lidar, class_names)
                 "velocity": [float(v_global[0]), float(v_global[1])],
                 "detection_name": name,
                 "detection_score": float(scores[i]),
-                "attribute_name": attribute_for(name, float(np.hypot(v_global[0], v_global[1]))),
+                "attribute_name": attribute_for(name, float(np.hypot(v_global[0], v_global[1])),
+                                                None if still is None else float(still[i])),
             })
         results[token] = out
     return results

@@ -35,6 +35,9 @@ LIDAR_FIELDS = ("class_names", "pc_range", "n_sweeps", "voxel_size", "vfe_ch", "
 # Modules that must load whole, and the one that loads where its tensors fit.
 WHOLE = ("lidar_encoder", "head")
 FITTING = "backbone"
+# The head's still logit (loss.attribute) loads where both the checkpoint and the model have it;
+# a model that adds it to a run without one starts it seeded, as a new head's output.
+STILL_HEAD = "head.conv_still."
 
 
 def init_from_lidar_run(model: nn.Module, path: str | Path, cfg: ModelConfig) -> str:
@@ -53,13 +56,18 @@ def init_from_lidar_run(model: nn.Module, path: str | Path, cfg: ModelConfig) ->
 
 def _lidar_tensors(ckpt: dict, want: dict, path: Path) -> tuple[dict, list[str]]:
     """({name: tensor} to load into a model whose state dict is ``want``: every tensor of the
-    WHOLE modules, checked by name and shape, and the FITTING module's that fit; [the FITTING
-    module's names left seeded])."""
+    WHOLE modules, checked by name and shape (the still head's where both have one), and the
+    FITTING module's that fit; [the names left seeded])."""
     weights = ckpt["model"]
-    take = {k: v for k, v in weights.items() if k.split(".")[0] in WHOLE}
-    check_tensors(take, {k: v for k, v in want.items() if k.split(".")[0] in WHOLE},
+
+    def both(k: str) -> bool:
+        """Not the still head's, or in the checkpoint and the model alike."""
+        return not k.startswith(STILL_HEAD) or (k in weights and k in want)
+
+    take = {k: v for k, v in weights.items() if k.split(".")[0] in WHOLE and both(k)}
+    check_tensors(take, {k: v for k, v in want.items() if k.split(".")[0] in WHOLE and both(k)},
                   f"--lidar-init {path}: the lidar detector of the checkpoint's variant '{ckpt['variant']}'")
-    seeded = []
+    seeded = [k for k in want if not both(k)]
     for k, v in want.items():
         if k.split(".")[0] == FITTING:
             if k in weights and weights[k].shape == v.shape:

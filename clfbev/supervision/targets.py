@@ -25,8 +25,10 @@ from clfbev.anchors import make_anchors, match_thresholds
 from clfbev.config import ModelConfig
 from clfbev.data import Batch, Sample, collate
 from clfbev.geometry import batch_nearest_lidar_points, bins_of
+from clfbev.head import per_anchor
 from clfbev.outputs import ModelOutputs
 from clfbev.supervision.assign import AnchorTargets, assign_targets, stack_targets
+from clfbev.supervision.attribute import still_loss, still_targets
 from clfbev.supervision.camera_bev import add_camera_bev_losses, camera_bev_targets, wants_bev_targets
 from clfbev.supervision.depth import depth_loss
 from clfbev.supervision.distill import load_teacher
@@ -47,6 +49,8 @@ class Targets:
         (:mod:`clfbev.supervision.heatmap`); None without ``cam_heatmap`` or ``cam_distill``.
     teacher : (B, C_teacher, ny, nx) the frozen lidar teacher's BEV features
         (:mod:`clfbev.supervision.distill`); None without ``cam_distill``.
+    still : (B, N) int64 the still state of each positive anchor's object, -1 where none
+        (:mod:`clfbev.supervision.attribute`); None without the still head (``loss.attribute``).
     """
 
     anchor: AnchorTargets
@@ -54,12 +58,13 @@ class Targets:
     semantic: Tensor | None = None
     heatmap: Tensor | None = None
     teacher: Tensor | None = None
+    still: Tensor | None = None
 
     def to(self, device: torch.device | str) -> "Targets":
         """A copy with every tensor on ``device``."""
         return Targets(self.anchor.to(device),
                        *(None if t is None else t.to(device) for t in (self.depth, self.semantic, self.heatmap,
-                                                                       self.teacher)))
+                                                                       self.teacher, self.still)))
 
 
 @torch.no_grad()
@@ -75,8 +80,9 @@ def build_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool
                        min_positives=cfg.min_positives)
         for boxes, labels in zip(batch.gt_boxes, batch.gt_labels)
     ])
+    still = still_targets(anchor, batch.gt_still) if cfg.loss.attribute > 0 else None
     if not cameras:
-        return Targets(anchor)
+        return Targets(anchor, still=still)
     # Pasted points have no pixels: they are no camera's target.
     depth, nearest = batch_nearest_lidar_points(batch, cfg)
     semantic = None
@@ -85,7 +91,7 @@ def build_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool
     heatmap = teacher_features = None
     if wants_bev_targets(cfg):
         heatmap, teacher_features = camera_bev_targets(batch, cfg, teacher)
-    return Targets(anchor, bins_of(depth, cfg.depth_bins), semantic, heatmap, teacher_features)
+    return Targets(anchor, bins_of(depth, cfg.depth_bins), semantic, heatmap, teacher_features, still)
 
 
 def with_targets(batch: Batch, cfg: ModelConfig, anchors: Tensor, cameras: bool = True,
@@ -146,11 +152,16 @@ class TrainingCollate:
 def training_loss(outputs: ModelOutputs, targets: Targets, cfg: ModelConfig) -> dict[str, Tensor]:
     """The training loss of a batch: the dict of :func:`clfbev.supervision.losses.detection_loss`
     (``loss``, ``loss_cls``, ``loss_reg``, ``loss_reg_theta``, ``loss_dir``, ``loss_vel``,
-    ``num_pos``) with, where the model has a camera, ``loss_depth`` (reported even at weight 0)
-    and, with a perspective head, ``loss_semantic``, and with the camera BEV's aux heads
-    ``loss_heatmap`` and ``loss_distill``, all unweighted; ``loss`` is the weighted total."""
+    ``num_pos``) with ``loss_still`` where the head has a still logit, where the model has a
+    camera ``loss_depth`` (reported even at weight 0) and, with a perspective head,
+    ``loss_semantic``, and with the camera BEV's aux heads ``loss_heatmap`` and ``loss_distill``,
+    all unweighted; ``loss`` is the weighted total."""
     losses = detection_loss(outputs.head, targets.anchor, cfg.loss, cfg.velocity_balance, cfg.velocity_beta,
                             cfg.velocity_weight)
+    if outputs.head.still_logits is not None:
+        n_anchors = outputs.head.cls_logits.shape[1]
+        losses["loss_still"] = still_loss(per_anchor(outputs.head.still_logits, n_anchors), targets.still)
+        losses["loss"] = losses["loss"] + cfg.loss.attribute * losses["loss_still"]
     if outputs.depth is None:
         return losses
     losses["loss_depth"] = depth_loss(outputs.depth, targets.depth, cfg.depth_bins, cfg.loss.depth_range_power)

@@ -58,9 +58,11 @@ def test_ground_truth_round_trip_is_perfect(tiny_dataset, tmp_path):
         assert errs["trans_err"] == pytest.approx(0.0, abs=1e-4), name
         assert errs["scale_err"] == pytest.approx(0.0, abs=1e-4), name
         if name in ("traffic_cone", "barrier"):
-            assert np.isnan(errs["vel_err"]), name
+            assert np.isnan(errs["vel_err"]) and np.isnan(errs["attr_err"]), name
         else:
             assert errs["vel_err"] == pytest.approx(0.0, abs=1e-2), name
+            # The speed and the still state give back every GT attribute.
+            assert errs["attr_err"] == 0.0, name
     assert (tmp_path / "eval" / "metrics_summary.json").exists()
     assert (tmp_path / "eval" / "metrics_details.json").exists()
 
@@ -75,7 +77,9 @@ def _gt_as_predictions(dataroot, tmp_path) -> tuple[list[str], dict, dict]:
                            DataConfig(class_names=classes, min_points=1, n_sweeps=1,
                                       point_range=(-1e4, -1e4, -1e3, 1e4, 1e4, 1e3)))
     samples = [ds[i] for i in range(len(ds))]
-    dets = [Detections(s.gt_boxes, torch.ones(len(s.gt_boxes)), s.gt_labels) for s in samples]
+    # Each box's still logit says its GT still state (clfbev.attributes).
+    dets = [Detections(s.gt_boxes, torch.ones(len(s.gt_boxes)), s.gt_labels,
+                       torch.from_numpy(np.where(s.gt_still == 1, 10.0, -10.0))) for s in samples]
     results = detections_to_results(dets, [s.sample_token for s in samples],
                                     [s.T_global_from_lidar for s in samples], classes)
     path = write_results(tmp_path / "results.json", results)

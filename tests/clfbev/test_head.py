@@ -701,7 +701,7 @@ def test_decode_of_encoded_targets_returns_gt_after_nms():
     empty = HeadOutput(*(torch.cat([t, torch.full_like(t, -8.0)]) for t in (out.cls_logits, out.box_deltas, out.dir_logits)))
     dets = decode(empty.cls_logits, empty.box_deltas, empty.dir_logits, anchors, score_thr=0.3, nms_iou=0.2, max_per_sample=50, pre_nms=100)
     assert len(dets) == 2
-    boxes, scores, det_labels = dets[0]
+    boxes, scores, det_labels = dets[0][:3]
     assert boxes.shape == (3, 9)
     assert_close(scores, np.full(3, 1 / (1 + math.exp(-8.0))), atol=1e-6)
     order = torch.argsort(boxes[:, 0])
