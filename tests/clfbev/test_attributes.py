@@ -128,7 +128,7 @@ def test_a_micro_model_learns_the_states_of_its_boxes(tiny_dataset, micro):
     model = CLFusionBEV(cfg, "lidar")
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     first = None
-    for _ in range(40):
+    for _ in range(20):
         losses = batch_loss(model, batch)
         first = losses["loss_still"].item() if first is None else first
         opt.zero_grad()

@@ -3,6 +3,7 @@ delivered sensors pick, the file round-trips, and `clfbev eval` of the file with
 the camera expert's own results, byte for byte."""
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from dataclasses import replace
@@ -110,14 +111,13 @@ def test_the_file_evaluates_without_a_lidar_exactly_as_the_camera_expert(tiny_da
                                                     model.state_dict().values()))
 
     ev = {}
-    for name, ckpt, corrupt in (("experts", out, ["--corrupt", "lidar_missing"]), ("camera", paths[CAMERA], []),
-                                ("experts_clean", out, []), ("fused", paths[FUSED], [])):
+    # (A sample with both sensors is the fused model's: test_each_sample_gets_exactly_its_experts_detections.)
+    for name, ckpt, corrupt in (("experts", out, ["--corrupt", "lidar_missing"]), ("camera", paths[CAMERA], [])):
         proc = _cli("eval", "--data", tiny_dataset, "--split", "sim-train", "--ckpt", ckpt, "--out", tmp_path / name,
                     "--no-plots", *corrupt)
         assert proc.returncode == 0, proc.stderr[-2000:]
         ev[name] = (tmp_path / name / "results.json").read_bytes()
-    assert ev["experts"] == ev["camera"] and ev["experts_clean"] == ev["fused"]
-    assert ev["camera"] != ev["fused"]
+    assert ev["experts"] == ev["camera"] and sum(map(len, json.loads(ev["camera"])["results"].values())) > 0
 
 
 def test_bad_experts_files_are_one_line(models, tmp_path):
