@@ -6,13 +6,13 @@ thresholds the simulator labels by (``simgen/labels.py``): a vehicle faster than
 ``vehicle.moving``, a walker faster than 0.2 m/s ``pedestrian.moving``, and a two-wheeler that
 moves has a rider. An object at rest is in one of two states that no speed tells apart:
 
-=============  ======================  ================================
-classes        still state 0           still state 1
-=============  ======================  ================================
-vehicles       ``vehicle.stopped``     ``vehicle.parked``
-pedestrian     ``pedestrian.standing``  ``pedestrian.sitting_lying_down``
-cycles         ``cycle.with_rider``    ``cycle.without_rider``
-=============  ======================  ================================
+==========  =========================  ==================================
+classes     still state 0              still state 1
+==========  =========================  ==================================
+vehicles    ``vehicle.stopped``        ``vehicle.parked``
+pedestrian  ``pedestrian.standing``    ``pedestrian.sitting_lying_down``
+cycles      ``cycle.with_rider``       ``cycle.without_rider``
+==========  =========================  ==================================
 
 (a two-wheeler's rider is its state at any speed). The head learns which with one logit per
 anchor, the still logit (``ModelConfig.loss.attribute``; :mod:`clfbev.supervision.targets`):

@@ -28,9 +28,9 @@ Frames and conventions
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 

@@ -40,9 +40,9 @@ from clfbev.run import robustness
 from clfbev.run.attention_plot import draw_attention
 from clfbev.run.attention_query import attention_modules
 from clfbev.run.checkpoint import load_model
-from clfbev.run.experts_file import assemble, load_predictor
 from clfbev.run.efficientnet_init import EFFICIENTNET_LITE0
 from clfbev.run.evaluate import EVAL_SCORE_THR, evaluate_model, predict_split, write_results
+from clfbev.run.experts_file import assemble, load_predictor
 from clfbev.run.image_init import camera_fields, init_camera_encoder, resolve_image_init
 from clfbev.run.memory import keep_freed_memory
 from clfbev.run.pretrain import PretrainConfig, final_loss, pretrain
@@ -442,7 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="clfbev", description="CL-FusionBEV: camera + lidar BEV fusion detector "
                                  "(train, evaluate with the official nuScenes metrics, predict, visualise).")
     sub = ap.add_subparsers(dest="command", required=True)
-    for add in (_add_train, _add_pretrain, _add_cache_features, _add_experts, _add_eval, _add_robustness, _add_predict, _add_show):
+    for add in (_add_train, _add_pretrain, _add_cache_features, _add_experts, _add_eval, _add_robustness, _add_predict,
+                _add_show):
         add(sub)
     return ap
 

@@ -26,8 +26,8 @@ from clfbev import io
 from clfbev.corruptions import Corruption
 from clfbev.data import NuScenesDetection
 from clfbev.errors import ConfigError, DataError
-from clfbev.run.experts_file import load_predictor
 from clfbev.run.evaluate import evaluate_model
+from clfbev.run.experts_file import load_predictor
 
 PAIRED_TABLES = ("sample_annotation", "instance", "sample", "ego_pose")
 # What occluders placed in the world may change in a paired set's labels (simgen --occlusion):
