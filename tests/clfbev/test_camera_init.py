@@ -51,7 +51,7 @@ def test_the_fusion_stage_starts_from_the_camera_run_and_the_lidar_run(runs):
     parts = {"camera": [], "lidar": [], "seeded": []}
     for k, v in model.items():
         module = k.split(".")[0]
-        if module == "camera_encoder":
+        if module in ("camera_encoder", "camera_aux"):         # the camera branch and its heatmap head
             assert torch.equal(v, camera[k]), k
             parts["camera"].append(k)
         elif module in ("lidar_encoder", "head") or (module == "backbone" and lidar[k].shape == v.shape):
@@ -61,7 +61,8 @@ def test_the_fusion_stage_starts_from_the_camera_run_and_the_lidar_run(runs):
             assert torch.equal(v, scratch[k]), k          # the fusion and the unfitting conv: seeded
             parts["seeded"].append(k)
     # Every camera tensor came over, BatchNorm's statistics included, and none is the seeded one.
-    assert parts["camera"] == [k for k in camera if k.startswith("camera_encoder.")]
+    assert parts["camera"] == [k for k in camera if k.split(".")[0] in ("camera_encoder", "camera_aux")]
+    assert any(k.startswith("camera_aux.") for k in parts["camera"])
     assert any(k.endswith("running_var") for k in parts["camera"])
     assert not any(torch.equal(scratch[k], camera[k]) for k in parts["camera"] if scratch[k].is_floating_point())
     assert {k.split(".")[0] for k in parts["seeded"]} == {"mcm", "fuser", "bsm", "backbone"}

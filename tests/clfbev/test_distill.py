@@ -110,11 +110,12 @@ def test_the_aux_heads_leave_every_other_start_as_it_was(micro_cfg, tmp_path):
     """Off, nothing is built; on, the heads are built last, so every other tensor of a seeded
     model is the one it has without them (the comparison at one seed is of the heads alone)."""
     _save_lidar(tmp_path / "teacher.pt", micro_cfg)
-    assert CameraBEVHeads.from_config(micro_cfg) is None
+    off = dataclasses.replace(micro_cfg, cam_heatmap=0.0)
+    assert CameraBEVHeads.from_config(off) is None
     on = dataclasses.replace(micro_cfg, cam_heatmap=1.0, cam_distill=1.0, cam_distill_teacher=str(tmp_path / "t.pt"))
     for variant in ("camera", "full"):
         torch.manual_seed(3)
-        base = CLFusionBEV(micro_cfg, variant).state_dict()
+        base = CLFusionBEV(off, variant).state_dict()
         torch.manual_seed(3)
         aux = CLFusionBEV(on, variant).state_dict()
         assert set(aux) - set(base) == {k for k in aux if k.startswith("camera_aux.")} != set()
