@@ -50,7 +50,8 @@ def recipe_env(data, micro, encoder, out, steps: int, **more) -> dict:
     return {**os.environ, "OMP_NUM_THREADS": "1", "PY": sys.executable, "DATA": str(data), "OUT": str(out),
             "CONFIG": str(micro), "IMAGE_INIT": str(encoder), "THREADS": "1", "SEED": "1",
             "CAMERA_STEPS": str(steps), "LIDAR_STEPS": str(steps), "FUSION_STEPS": str(steps),
-            "TRAIN_ARGS": "--batch-size 1 --precise-bn-batches 2 --save-every-steps 1 --quiet", **more}
+            "TRAIN_ARGS": "--batch-size 1 --precise-bn-batches 2 --save-every-steps 1 --quiet",
+            "DROP_LIDAR": "0.25", "DROP_CAMERA": "0.3333", **more}      # the dropout's draws resume too
 
 
 def staged(env: dict, *args) -> subprocess.CompletedProcess:
