@@ -66,7 +66,8 @@ class SensorExperts(nn.Module):
 
     def expert(self, role: str) -> CLFusionBEV:
         """The model that answers samples routed to ``role`` (the fused one where that expert is absent)."""
-        return getattr(self, role) or self.fused
+        model = getattr(self, role)
+        return self.fused if model is None else model
 
     def predict(self, batch: Batch, **decode_options) -> list[Detections]:
         """B Detections (lidar frame), sample i's from the expert :func:`route` picks for it;
