@@ -172,6 +172,18 @@ def corrupt_points(points: np.ndarray, rings: np.ndarray, forward_lidar: np.ndar
 
 # ---------------------------------------------------------------- cameras
 
+def missing_cameras(n: int, corruptions, token: str) -> np.ndarray:
+    """(n,) bool: the cameras of sample ``token`` that deliver nothing (``camera_crash``,
+    ``frame_lost``), drawn from each corruption's own generator (:meth:`Corruption.rng`)."""
+    missing = np.zeros(n, bool)
+    for c in corruptions:
+        if c.name == "camera_crash":
+            missing[c.rng(token).choice(n, size=min(n, int(c.severity)), replace=False)] = True
+        elif c.name == "frame_lost":
+            missing[c.rng(token).random(n) < c.severity] = True
+    return missing
+
+
 def corrupt_cameras(images: np.ndarray, T_lidar_from_cam: np.ndarray, intrinsics: np.ndarray, img_aug: np.ndarray,
                     up_lidar: np.ndarray, corruptions, token: str):
     """images (N, 3, H, W) network input, T_lidar_from_cam (N, 4, 4) -> corrupted copies and
@@ -181,14 +193,10 @@ def corrupt_cameras(images: np.ndarray, T_lidar_from_cam: np.ndarray, intrinsics
     pixels; up_lidar : (3,) the ego's up axis in the lidar frame (``motion_blur``'s horizon)."""
     images, T = images.copy(), T_lidar_from_cam.copy()
     n = len(images)
-    missing = np.zeros(n, bool)
+    missing = missing_cameras(n, corruptions, token)
     for c in corruptions:
         rng = c.rng(token)
-        if c.name == "camera_crash":
-            missing[rng.choice(n, size=min(n, int(c.severity)), replace=False)] = True
-        elif c.name == "frame_lost":
-            missing[rng.random(n) < c.severity] = True
-        elif c.name == "extrinsic_noise":
+        if c.name == "extrinsic_noise":
             rot = Rotation.from_euler("xyz", rng.normal(0.0, c.severity, (n, 3)), degrees=True).as_matrix()
             shift = rng.normal(0.0, 0.02 * c.severity, (n, 3))
             noise = np.tile(np.eye(4), (n, 1, 1))

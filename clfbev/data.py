@@ -339,14 +339,11 @@ class NuScenesDetection(torch.utils.data.Dataset):
         T_global_from_lidar = self._T_global_from_sensor(lidar_sd)
         T_lidar_from_global = np.linalg.inv(T_global_from_lidar)
         images, K, T_lidar_from_cam, A = self._cameras(sample, T_lidar_from_global)
-        points, rings = self._points(lidar_sd, T_lidar_from_global)
+        points = self._corrupted_points(sample, lidar_sd, T_lidar_from_global)
         missing = None
         if self.corruptions:
             T_ego_from_lidar = self._T_parent_from(lidar_sd, "calibrated_sensor")
-            forward_lidar = T_ego_from_lidar[:3, :3].T @ np.array([1.0, 0, 0])
             up_lidar = T_ego_from_lidar[:3, :3].T @ np.array([0, 0, 1.0])
-            points = corruptions.corrupt_points(points, rings, forward_lidar,
-                                                corruptions.lidar_corruptions(self.corruptions), sample["token"])
             images, T_lidar_from_cam, missing = corruptions.corrupt_cameras(
                 images, T_lidar_from_cam, K, A, up_lidar, corruptions.camera_corruptions(self.corruptions),
                 sample["token"])
@@ -365,6 +362,24 @@ class NuScenesDetection(torch.utils.data.Dataset):
             camera_missing=missing,
             gt_still=still,
         )
+
+    def lidar_points(self, index: int) -> np.ndarray:
+        """(n, 5) float32 points of sample ``index``, corrupted, exactly as :meth:`__getitem__`
+        gives them, without reading its cameras."""
+        sample = self.nusc.get("sample", self.sample_tokens[index])
+        lidar_sd = self.nusc.get("sample_data", sample["data"][LIDAR])
+        T_lidar_from_global = np.linalg.inv(self._T_global_from_sensor(lidar_sd))
+        return self._corrupted_points(sample, lidar_sd, T_lidar_from_global)
+
+    def _corrupted_points(self, sample: dict, lidar_sd: dict, T_lidar_from_global: np.ndarray) -> np.ndarray:
+        """:meth:`_points` with the lidar corruptions applied."""
+        points, rings = self._points(lidar_sd, T_lidar_from_global)
+        lidar = corruptions.lidar_corruptions(self.corruptions)
+        if not lidar:
+            return points
+        T_ego_from_lidar = self._T_parent_from(lidar_sd, "calibrated_sensor")
+        forward_lidar = T_ego_from_lidar[:3, :3].T @ np.array([1.0, 0, 0])
+        return corruptions.corrupt_points(points, rings, forward_lidar, lidar, sample["token"])
 
     def lidar_and_boxes(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What sample ``index`` holds without its cameras (and without the corruptions applied after

@@ -21,6 +21,7 @@ from . import writer
 from .degrade import visibility_of
 from .errors import ConfigError
 from .settings import MakeSettings, degradation_stream
+from .weather.particles import rain_extinction, snow_extinction
 from .writer import SceneRecords
 
 
@@ -69,15 +70,21 @@ def _flatten(d: dict, prefix: str = "") -> dict:
 
 def write_degradation_record(s: MakeSettings, dataroot: Path) -> None:
     """``<version>/degradation.json``: every degradation and weather setting, the derived fog
-    extinction and visibility, the dropped rings per scene, and the pairing contract. Written for clean sets
+    extinction and visibility, the cameras' (fog, rain and snowfall together), the dropped rings per scene, and the pairing contract. Written for clean sets
     too (all off), so that a set always says what it is."""
     d = s.cfg.degrade
+    w = s.cfg.weather
+    camera_alpha = d.alpha + rain_extinction(w.rain) + snow_extinction(w.snow)
     rings = {f"scene-{i:04d}": [int(r) for r in degradation_stream(s, i)[0]]
              for i in range(s.n_scenes)} if d.beam_drop else {}
     record = {
         "settings": dataclasses.asdict(d),
         "fog_alpha_per_m": d.alpha,
         "fog_visibility_m": visibility_of(d.alpha) if d.alpha > 0 else None,
+        # What the cameras see through: fog, rain and snowfall each attenuate by exp(-alpha d), so
+        # their extinctions add; the visibility (MOR) is where a black object's contrast is 5 %.
+        "camera_extinction_per_m": camera_alpha,
+        "camera_visibility_m": visibility_of(camera_alpha) if camera_alpha > 0 else None,
         "failed_sensors": list(d.dropped),
         "dropped_rings": rings,
         "weather": dataclasses.asdict(s.cfg.weather),

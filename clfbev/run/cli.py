@@ -393,10 +393,14 @@ def _add_eval(sub) -> None:
 
 def _add_robustness(sub) -> None:
     p = sub.add_parser("robustness", help="every checkpoint on paired degraded sets and load-time corruptions",
-                       description="Evaluate checkpoints on a clean set, paired degraded sets (simgen fog, lens "
-                       "dirt, ...) and load-time corruptions, all through the official DetectionEval. Writes "
-                       "robustness.json, robustness.md (NDS/mAP, RR and mRR, CE and mCE against the concat "
-                       "checkpoint) and robustness.png to --out.")
+                       description="Evaluate checkpoints on a clean set, paired degraded sets (simgen fog, rain, "
+                       "snowfall, night, occluders, lens dirt, ...) and load-time corruptions, all through the "
+                       "official DetectionEval, beside each condition's sensor-visibility oracle (the ground truth "
+                       "that the condition's sensors still see, as predictions: the most any detector reaches). "
+                       "Writes robustness.json, robustness.md (NDS/mAP, RR and mRR, CE and mCE against the concat "
+                       "checkpoint, the share of the oracle) and robustness.png (NDS against severity per condition "
+                       "family, bars for the rest) to --out. Each cell is kept in OUT/NAME/CONDITION/ with what it "
+                       "evaluated: a rerun reuses the cells of unchanged checkpoints and sets.")
     p.add_argument("--ckpt", action="append", required=True, metavar="NAME=CKPT", help="a checkpoint (repeat)")
     p.add_argument("--set", action="append", required=True, metavar="NAME=DATAROOT",
                    help="a dataroot (repeat); the first is the clean reference, the others must be paired with it")

@@ -1,26 +1,32 @@
 """The robustness suite: every checkpoint on every condition through the official DetectionEval,
-with the robustness benchmarks' summary metrics and a report.
+beside the sensor-visibility oracle of each condition, with the robustness benchmarks' summary
+metrics and a report (:mod:`clfbev.run.robustness_report`).
 
 Conditions are (1) the first ``--set``, the clean reference; (2) every further ``--set``, a paired
-degraded dataroot (same annotation tables, only the sensor data differ: simgen's fog, lens dirt,
-...; with occluders in the world, also what the sensors see of each object, see
-:func:`check_paired`); (3) every ``--corrupt`` load-time corruption applied to the clean set
-(:mod:`clfbev.corruptions`). Every cell is one :func:`clfbev.run.evaluate.evaluate_model`.
+degraded dataroot (same annotation tables, only the sensor data differ: simgen's fog, rain,
+snowfall, night, lens dirt, ...; with occluders in the world, also what the sensors see of each
+object, see :func:`check_paired`); (3) every ``--corrupt`` load-time corruption applied to the
+clean set (:mod:`clfbev.corruptions`). Every cell is one :func:`clfbev.run.evaluate.evaluate_model`,
+kept in ``OUT/MODEL/CONDITION/`` with the identity of what it evaluated: a rerun reuses the cells
+whose checkpoint and data are unchanged, so an interrupted suite continues where it stopped.
+
+Each condition is a point of a curve (``family`` and ``severity``: fog severity, rain or snowfall
+rate, a corruption's severity; the clean set is severity 0 of every curve) or, with no family, a
+bar of its own (night, occlusion, lens dirt, a set combining several).
 
 Metrics per checkpoint m and condition c:
 
 - ``RR = NDS_c / NDS_clean`` (resilience rate), ``mRR`` its mean over the degraded conditions;
 - ``CE = (1 - NDS_c(m)) / (1 - NDS_c(baseline))`` (corruption error relative to the ``concat``
-  checkpoint, as mCE is relative to a reference model), ``mCE`` its mean.
+  checkpoint, as mCE is relative to a reference model), ``mCE`` its mean;
+- ``share = NDS_c / NDS_c(oracle)``: how much of what the sensors still see the model finds.
 """
 from __future__ import annotations
 
+import hashlib
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
 
 from clfbev import io
 from clfbev.corruptions import Corruption
@@ -28,12 +34,15 @@ from clfbev.data import NuScenesDetection
 from clfbev.errors import ConfigError, DataError
 from clfbev.run.evaluate import evaluate_model
 from clfbev.run.experts_file import load_predictor
+from clfbev.run.oracle import evaluate_oracle
+from clfbev.run.robustness_report import markdown, plot, summarise
+from clfbev.settings import DETECTION_CLASSES
 
 PAIRED_TABLES = ("sample_annotation", "instance", "sample", "ego_pose")
 # What occluders placed in the world may change in a paired set's labels (simgen --occlusion):
 # how much of each object the sensors see, never the object itself.
 SEEN_FIELDS = ("visibility_token", "num_lidar_pts", "num_radar_pts")
-BASELINE_VARIANT = "concat"
+ORACLE = "oracle"          # the oracle's cells: OUT/oracle/CONDITION/
 
 
 @dataclass(frozen=True)
@@ -41,7 +50,8 @@ class Condition:
     name: str
     dataroot: Path
     corruptions: tuple[Corruption, ...] = ()
-    fog_severity: int | None = None     # from the set's degradation.json (0 for a clean set)
+    family: str | None = None      # the curve it is a point of (None: a bar of its own)
+    severity: float = 0.0
 
 
 def check_paired(clean: Path, other: Path, version: str, name: str) -> None:
@@ -83,17 +93,35 @@ def _differing_field(a: Path, b: Path) -> str | None:
     return None
 
 
-def fog_severity_of(root: Path, version: str) -> int | None:
-    """Fog severity recorded in ``degradation.json`` (0 without fog; None if not recorded)."""
+def set_family(root: Path, version: str) -> tuple[str | None, float]:
+    """A paired set's curve from its ``degradation.json``: ("fog", severity), ("rain", mm/h) or
+    ("snow", mm/h) when that is all the set changes; (None, 0) for anything else (night,
+    occluders, lens dirt, dead sensors, a combination) and for a set without a record."""
     path = root / version / "degradation.json"
     if not path.is_file():
-        return None
+        return None, 0.0
     try:
         rec = json.loads(path.read_text())
-        s = rec["settings"]
-        return int(s["fog"]) if not s.get("fog_visibility") else None
-    except (ValueError, KeyError, TypeError, OverflowError):
+        d, w = rec["settings"], rec.get("weather", {})
+        fog = 0.0 if d.get("fog_visibility") else float(d.get("fog", 0))
+        changes = {"fog": fog, "rain": float(w.get("rain", 0.0)), "snow": float(w.get("snow", 0.0))}
+        others = (d.get("fog_visibility") or w.get("night") or d.get("occlusion", "none") != "none"
+                  or d.get("lens_occlusion") or d.get("beam_drop") or d.get("lidar_fov", 360) < 360
+                  or d.get("drop_sensors"))
+    except (ValueError, KeyError, TypeError, AttributeError, OverflowError):
         raise DataError(f"{path}: not a simgen degradation record") from None
+    active = [(k, v) for k, v in changes.items() if v > 0]
+    if len(active) == 1 and not others:
+        return active[0]
+    return None, 0.0
+
+
+def corruption_family(c: Corruption) -> tuple[str | None, float]:
+    """A load-time corruption's curve: its name (with its sensor), at its severity; the ones
+    without a severity are bars."""
+    if c.name == "lidar_missing":
+        return None, 0.0
+    return (f"{c.name}:{c.sensor}" if c.sensor else c.name), float(c.severity)
 
 
 def conditions_of(sets: list[tuple[str, Path]], corruptions: list[Corruption], version: str) -> list[Condition]:
@@ -105,34 +133,84 @@ def conditions_of(sets: list[tuple[str, Path]], corruptions: list[Corruption], v
     for name, root in sets:
         if not (root / version).is_dir():
             raise DataError(f"set {name}: no nuScenes tables at {root / version}")
-    out = [Condition(clean_name, clean_root, (), fog_severity_of(clean_root, version) or 0)]
+    out = [Condition(clean_name, clean_root)]
     for name, root in others:
         check_paired(clean_root, root, version, name)
-        # A degraded set without fog (occlusion, lens dirt) is not a point of the fog curve.
-        out.append(Condition(name, root, (), fog_severity_of(root, version) or None))
-    out += [Condition(str(c), clean_root, (c,)) for c in corruptions]
+        out.append(Condition(name, root, (), *set_family(root, version)))
+    out += [Condition(str(c), clean_root, (c,), *corruption_family(c)) for c in corruptions]
     names = [c.name for c in out]
     if len(set(names)) != len(names):
         raise ConfigError(f"condition names must be unique (--set NAME, --corrupt), got {names}")
+    if ORACLE in names:
+        raise ConfigError(f"'{ORACLE}' names the oracle's cells: give the condition another name")
     return out
+
+
+def _digest(*paths: Path) -> str:
+    """sha256 over the bytes of ``paths`` (absent ones count as empty)."""
+    h = hashlib.sha256()
+    for path in paths:
+        h.update(path.read_bytes() if path.is_file() else b"")
+    return h.hexdigest()
+
+
+def _condition_identity(cond: Condition, version: str) -> dict:
+    """What a cell's result depends on besides the model: the set's tables and record, the corruptions."""
+    tables = cond.dataroot / version
+    return {"condition": cond.name, "dataroot": str(cond.dataroot), "corruptions": [str(c) for c in cond.corruptions],
+            "data_sha256": _digest(tables / "sample_data.json", tables / "sample_annotation.json",
+                                   tables / "degradation.json")}
+
+
+def _cell(out_dir: Path, identity: dict, compute) -> dict:
+    """The devkit summary of one cell: reused from ``out_dir`` when its ``cell.json`` holds the
+    same identity, else computed by ``compute()`` and recorded (the summary first, the identity
+    last, so that an interrupted cell is computed again)."""
+    ident_path, summary_path = out_dir / "cell.json", out_dir / "metrics_summary.json"
+    if ident_path.is_file() and summary_path.is_file():
+        try:
+            if json.loads(ident_path.read_text()) == identity:
+                return json.loads(summary_path.read_text())
+        except ValueError:
+            pass      # a cell cut short: computed again
+    ident_path.unlink(missing_ok=True)
+    summary = compute()
+    io.write_json(summary_path, summary)
+    io.write_json(ident_path, identity)
+    return summary
+
+
+def _cell_dir(out: Path, name: str, cond: Condition) -> Path:
+    return out / name / cond.name.replace(":", "_")
 
 
 def run(ckpts: list[tuple[str, Path]], conditions: list[Condition], out: Path, split: str, version: str,
         progress=print) -> dict:
-    """Evaluate every checkpoint on every condition; returns (and writes) the robustness record."""
+    """Evaluate the oracle and every checkpoint on every condition; returns (and writes) the
+    robustness record."""
     if not ckpts:
         raise ConfigError("give at least one --ckpt NAME=CHECKPOINT")
+    if ORACLE in (name for name, _ in ckpts):
+        raise ConfigError(f"'{ORACLE}' names the oracle's cells: give the checkpoint another name")
     out.mkdir(parents=True, exist_ok=True)
     record = {"split": split, "conditions": [c.name for c in conditions], "clean": conditions[0].name,
-              "fog_severity": {c.name: c.fog_severity for c in conditions}, "models": {}}
+              "family": {c.name: [c.family, c.severity] for c in conditions}, "models": {}, "oracle": {}}
+    for cond in conditions:
+        ident = {**_condition_identity(cond, version), "split": split}
+        summary = _cell(_cell_dir(out, ORACLE, cond), ident, lambda: evaluate_oracle(
+            cond.dataroot, version, split, cond.corruptions, _cell_dir(out, ORACLE, cond), DETECTION_CLASSES))
+        record["oracle"][cond.name] = {**_metrics(summary), "counts": summary["oracle_counts"]}
+        progress(f"{ORACLE:12s} {cond.name:24s} mAP {summary['mean_ap']:.4f}  NDS {summary['nd_score']:.4f}")
     for name, path in ckpts:
         model, ckpt = load_predictor(path)
         entry = {"checkpoint": str(path), "variant": ckpt["variant"], "metrics": {}}
+        model_ident = {"checkpoint_sha256": _digest(Path(path)), "split": split}
         for cond in conditions:
+            cell = _cell_dir(out, name, cond)
+            ident = {**_condition_identity(cond, version), **model_ident}
             ds = NuScenesDetection(cond.dataroot, version, split, model.cfg.data_config(), cond.corruptions)
-            summary = evaluate_model(model, ds, out / name / cond.name.replace(":", "_"))
-            entry["metrics"][cond.name] = {"mAP": summary["mean_ap"], "NDS": summary["nd_score"],
-                                           "AP": summary["mean_dist_aps"]}
+            summary = _cell(cell, ident, lambda: evaluate_model(model, ds, cell))
+            entry["metrics"][cond.name] = _metrics(summary)
             progress(f"{name:12s} {cond.name:24s} mAP {summary['mean_ap']:.4f}  NDS {summary['nd_score']:.4f}")
         record["models"][name] = entry
     summarise(record)
@@ -142,81 +220,5 @@ def run(ckpts: list[tuple[str, Path]], conditions: list[Condition], out: Path, s
     return record
 
 
-def summarise(record: dict) -> None:
-    """Add RR / mRR and, when a ``concat`` checkpoint is present, CE / mCE, in place."""
-    clean = record["clean"]
-    degraded = [c for c in record["conditions"] if c != clean]
-    base = next((n for n, m in record["models"].items() if m["variant"] == BASELINE_VARIANT), None)
-    record["baseline"] = base
-    for m in record["models"].values():
-        nds0 = m["metrics"][clean]["NDS"]
-        m["RR"] = {c: (m["metrics"][c]["NDS"] / nds0 if nds0 > 0 else math.nan) for c in record["conditions"]}
-        m["mRR"] = float(np.mean([m["RR"][c] for c in degraded])) if degraded else math.nan
-        if base is not None:
-            b = record["models"][base]["metrics"]
-            m["CE"] = {c: ((1 - m["metrics"][c]["NDS"]) / (1 - b[c]["NDS"]) if b[c]["NDS"] < 1 else math.nan)
-                       for c in record["conditions"]}
-            m["mCE"] = float(np.mean([m["CE"][c] for c in degraded])) if degraded else math.nan
-
-
-def markdown(record: dict) -> str:
-    """The report: NDS (mAP) per model and condition with mRR and mCE, then RR and CE per condition."""
-    conds = record["conditions"]
-    lines = ["# Robustness", "",
-             f"Split `{record['split']}`; clean reference `{record['clean']}`; official DetectionEval for every "
-             f"cell. RR = NDS_c / NDS_clean; CE = (1 - NDS_c) / (1 - NDS_c of the `{BASELINE_VARIANT}` baseline"
-             f"{' `' + record['baseline'] + '`' if record.get('baseline') else ', absent here'}).", "",
-             "## NDS (mAP)", "",
-             "| model | variant | " + " | ".join(conds) + " | mRR | mCE |",
-             "|---|---|" + "---:|" * (len(conds) + 2)]
-    for name, m in record["models"].items():
-        cells = [f"{m['metrics'][c]['NDS']:.4f} ({m['metrics'][c]['mAP']:.4f})" for c in conds]
-        mce = f"{m['mCE']:.3f}" if "mCE" in m else "-"
-        lines.append(f"| {name} | {m['variant']} | " + " | ".join(cells) + f" | {m['mRR']:.3f} | {mce} |")
-    lines += ["", "## RR per condition", "", "| model | " + " | ".join(conds) + " |", "|---|" + "---:|" * len(conds)]
-    for name, m in record["models"].items():
-        lines.append(f"| {name} | " + " | ".join(f"{m['RR'][c]:.3f}" for c in conds) + " |")
-    if record.get("baseline"):
-        lines += ["", "## CE per condition", "", "| model | " + " | ".join(conds) + " |", "|---|" + "---:|" * len(conds)]
-        for name, m in record["models"].items():
-            lines.append(f"| {name} | " + " | ".join(f"{m['CE'][c]:.3f}" for c in conds) + " |")
-    lines += ["", "![NDS against fog severity, and the other conditions](robustness.png)", ""]
-    return "\n".join(lines)
-
-
-def plot(record: dict, path: Path) -> None:
-    """NDS against fog severity (one line per model), and a bar chart of the other conditions
-    when there are any (a fog-only run gets the fog panel alone)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fog = {c: s for c, s in record["fog_severity"].items() if s is not None}
-    other = [c for c in record["conditions"] if c not in fog]
-    if other:
-        fig, (a1, a2) = plt.subplots(1, 2, figsize=(13, 4.5), dpi=110, gridspec_kw={"width_ratios": [1, 1.6]})
-    else:
-        fig, a1 = plt.subplots(1, 1, figsize=(6, 4.5), dpi=110)
-    for name, m in record["models"].items():
-        pts = sorted((s, m["metrics"][c]["NDS"]) for c, s in fog.items())
-        a1.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=f"{name} ({m['variant']})")
-    a1.set_xlabel("fog severity (0 = clean)")
-    a1.set_ylabel("NDS")
-    a1.set_title("NDS under fog (paired sets)")
-    a1.grid(alpha=0.3)
-    a1.legend(fontsize=8)
-    if other:
-        names = list(record["models"])
-        width = 0.8 / len(names)
-        x = np.arange(len(other))
-        for k, name in enumerate(names):
-            a2.bar(x + k * width, [record["models"][name]["metrics"][c]["NDS"] for c in other], width, label=name)
-        a2.set_xticks(x + width * (len(names) - 1) / 2)
-        a2.set_xticklabels(other, rotation=25, ha="right", fontsize=8)
-        a2.set_ylabel("NDS")
-        a2.set_title("occlusion, corruptions and sensor failure")
-        a2.grid(alpha=0.3, axis="y")
-        a2.legend(fontsize=8)
-    fig.tight_layout()
-    io.save_figure(path, fig)
-    plt.close(fig)
+def _metrics(summary: dict) -> dict:
+    return {"mAP": summary["mean_ap"], "NDS": summary["nd_score"], "AP": summary["mean_dist_aps"]}

@@ -126,16 +126,29 @@ def test_robustness_report_on_paired_sets(tiny_dataset, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     rec = json.loads((out / "robustness.json").read_text())
     assert rec["conditions"] == ["clean", "fog3", "camera_crash:6"]
-    assert rec["fog_severity"] == {"clean": 0, "fog3": 3, "camera_crash:6": None}
+    assert rec["family"] == {"clean": [None, 0.0], "fog3": ["fog", 3.0], "camera_crash:6": ["camera_crash", 6.0]}
+    # The oracle sees everything on the clean set; fog hides some objects from the lidar.
+    assert rec["oracle"]["clean"]["NDS"] == pytest.approx(1.0)
+    assert rec["oracle"]["fog3"]["counts"]["lidar"] < rec["oracle"]["clean"]["counts"]["lidar"]
     for m in rec["models"].values():
         assert m["metrics"]["clean"]["NDS"] > 0
         assert m["RR"]["clean"] == pytest.approx(1.0)
+        assert m["share"]["clean"] == pytest.approx(m["metrics"]["clean"]["NDS"])
         assert all(math.isfinite(m["metrics"][c]["NDS"]) for c in rec["conditions"])
     assert rec["baseline"] == "concat"
     assert rec["models"]["concat"]["CE"]["fog3"] == pytest.approx(1.0)
     md = (out / "robustness.md").read_text()
     assert "| full | full |" in md and "mRR" in md
     assert (out / "robustness.png").stat().st_size > 10_000
+
+    # A rerun reuses every cell it has (nothing is evaluated again) and writes the same record.
+    cells = sorted(out.glob("*/*/metrics_summary.json"))
+    assert len(cells) == 3 * 3
+    stamps = [c.stat().st_mtime_ns for c in cells]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert [c.stat().st_mtime_ns for c in cells] == stamps
+    assert json.loads((out / "robustness.json").read_text()) == rec
 
     # A set that is not paired with the clean one is refused.
     other = tmp_path / "other"
@@ -174,32 +187,43 @@ def test_pairing_allows_only_what_occluders_change(tmp_path):
         check_paired(clean, make("fewer", anns[:2]), "v", "fewer")
 
 
-def test_plot_of_fog_sets_only_has_the_fog_panel(tmp_path):
-    """With fog sets only, the picture is the fog panel alone (no empty bar chart beside it);
-    with another condition, the bar chart joins it."""
+def test_plot_has_a_panel_per_family_and_one_of_bars(tmp_path):
+    """Fog sets only: the fog panel alone (no empty bar chart beside it); another condition of no
+    family adds the bar chart; a second family adds its own panel."""
     import cv2
 
     from clfbev.run.robustness import plot
 
-    models = {name: {"variant": "lidar", "metrics": {"clean": {"NDS": 0.3}, "fog3": {"NDS": 0.2},
-                                                     "occlusion": {"NDS": 0.25}}} for name in ("a", "b")}
-    fog_only = {"fog_severity": {"clean": 0, "fog3": 3}, "conditions": ["clean", "fog3"], "models": models}
-    plot(fog_only, tmp_path / "fog.png")
-    both = {"fog_severity": {"clean": 0, "fog3": 3, "occlusion": None},
-            "conditions": ["clean", "fog3", "occlusion"], "models": models}
-    plot(both, tmp_path / "both.png")
-    w_fog, w_both = (cv2.imread(str(tmp_path / f)).shape[1] for f in ("fog.png", "both.png"))
-    assert w_fog == 660 and w_both == 1430      # 6 and 13 inches at 110 dpi
+    conds = ("clean", "fog3", "occlusion", "beam_missing:16")
+    models = {name: {"variant": "lidar", "metrics": {c: {"NDS": 0.3 - 0.01 * k} for k, c in enumerate(conds)}}
+              for name in ("a", "b")}
+    oracle = {c: {"NDS": 1.0 - 0.1 * k} for k, c in enumerate(conds)}
+    family = {"clean": [None, 0.0], "fog3": ["fog", 3.0], "occlusion": [None, 0.0],
+              "beam_missing:16": ["beam_missing", 16.0]}
+    widths = []
+    for k, shown in enumerate((["clean", "fog3"], ["clean", "fog3", "occlusion"], list(conds))):
+        rec = {"clean": "clean", "family": family, "conditions": shown, "models": models, "oracle": oracle}
+        plot(rec, tmp_path / f"{k}.png")
+        widths.append(cv2.imread(str(tmp_path / f"{k}.png")).shape[1])
+    assert widths == [495, 990, 1485]      # 1, 2 and 3 panels of 4.5 inches at 110 dpi
 
 
-def test_only_fogged_sets_are_points_of_the_fog_curve(tiny_dataset, tmp_path):
-    """The clean set is severity 0; a paired set without fog (occlusion, lens dirt) is not a fog
-    condition, so the plot shows it as a bar, not as a second point at severity 0."""
+def test_a_set_is_a_point_of_a_curve_only_when_it_changes_one_thing(tiny_dataset, tmp_path):
+    """The clean set is severity 0; a set with fog, rain or snowfall alone is a point of that
+    curve at its severity or rate; a set with anything else (occluders, night, a combination)
+    is a bar of its own, not a second point at severity 0."""
     sets = [("clean", tiny_dataset)]
-    for name, settings in [("occlusion", {"fog": 0, "occlusion": "heavy"}), ("fog2", {"fog": 2})]:
+    for name, settings, weather in [("occlusion", {"fog": 0, "occlusion": "heavy"}, {}), ("fog2", {"fog": 2}, {}),
+                                    ("rain25", {"fog": 0}, {"rain": 25.0}), ("snow1", {"fog": 0}, {"snow": 1.0}),
+                                    ("night", {"fog": 0}, {"night": True}),
+                                    ("fog1_rain10", {"fog": 1}, {"rain": 10.0})]:
         root = tmp_path / name
         shutil.copytree(tiny_dataset / "v1.0-sim", root / "v1.0-sim", ignore=shutil.ignore_patterns("degradation.json"))
-        (root / "v1.0-sim" / "degradation.json").write_text(json.dumps({"settings": settings}))
+        (root / "v1.0-sim" / "degradation.json").write_text(json.dumps({"settings": settings, "weather": weather}))
         sets.append((name, root))
-    severity = {c.name: c.fog_severity for c in conditions_of(sets, [], "v1.0-sim")}
-    assert severity == {"clean": 0, "occlusion": None, "fog2": 2}
+    corruptions = [parse("beam_missing:16"), parse("lidar_missing"), parse("misalign:CAM_FRONT:2")]
+    family = {c.name: (c.family, c.severity) for c in conditions_of(sets, corruptions, "v1.0-sim")}
+    assert family == {"clean": (None, 0.0), "occlusion": (None, 0.0), "fog2": ("fog", 2.0), "rain25": ("rain", 25.0),
+                      "snow1": ("snow", 1.0), "night": (None, 0.0), "fog1_rain10": (None, 0.0),
+                      "beam_missing:16": ("beam_missing", 16.0), "lidar_missing": (None, 0.0),
+                      "misalign:CAM_FRONT:2": ("misalign:CAM_FRONT", 2.0)}

@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
+import pytest
+
 from conftest import TINY_ARGS, run_simgen
+from simgen.weather.particles import rain_extinction, snow_extinction
 
 PAIRED = ("sample_annotation", "instance", "sample", "ego_pose", "sample_data", "calibrated_sensor")
 
@@ -67,6 +71,10 @@ def test_rain_snow_and_night_together_pair_with_the_clear_day(tmp_path, tiny_dat
                (tiny_dataset / "v1.0-sim" / f"{table}.json").read_bytes(), table
     rec = json.loads((out / "v1.0-sim" / "degradation.json").read_text())
     assert rec["weather"] == {"rain": 25.0, "snow": 1.0, "night": True} and rec["settings"]["fog"] == 1
+    # The cameras see through the fog, the rain and the snowfall at once: their extinctions add.
+    alpha = 0.005 + rain_extinction(25.0) + snow_extinction(1.0)
+    assert rec["camera_extinction_per_m"] == pytest.approx(alpha, rel=1e-12)
+    assert rec["camera_visibility_m"] == pytest.approx(math.log(20.0) / alpha, rel=1e-12)
     scene = json.loads((out / "v1.0-sim" / "scene.json").read_text())[0]
     assert "rain 25 mm/h" in scene["description"] and "night" in scene["description"]
     clean, storm = _files(tiny_dataset, "samples"), _files(out, "samples")
