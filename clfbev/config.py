@@ -368,8 +368,12 @@ def tiny() -> ModelConfig:
       walker's heading is its predicted velocity's direction where it walks
       (``heading_follow_classes``), other boxes' yaw turns by pi where it points against a
       velocity above 0.5 m/s.
+    - Attributes: a still logit per anchor (``loss.attribute`` 1.0) learns which of its class's
+      two resting states a box is in (parked or stopped, standing or sitting, with or without a
+      rider); the moving state follows from the predicted speed (:mod:`clfbev.attributes`).
     """
-    return ModelConfig(n_sweeps=10, sweep_bands=5, sweep_offsets=True, loss=LossWeights(dir=1.0, depth_range_power=2.0),
+    return ModelConfig(n_sweeps=10, sweep_bands=5, sweep_offsets=True,
+                       loss=LossWeights(dir=1.0, depth_range_power=2.0, attribute=1.0),
                        min_positives=4,
                        velocity_tower=16, velocity_detach=True, velocity_gate=True, velocity_balance=True,
                        velocity_beta=0.1, sweep_trail=True, heading_from_motion=0.5,

@@ -3,12 +3,14 @@
 
     python scripts/results_table.py benchmark_out --runs lidar_s0 full_s0 ... --out docs/results.md
 
-Reads OUT/benchmark.json (the benchmark's settings), the dataset's splits, and per run
-RUN/run.json (recipe, code version), RUN/wall.jsonl (the timed parts) and
+Reads OUT/benchmark.json (the benchmark's settings), the dataset's splits, OUT/staged.json (the
+stages' progress, for the pending runs) and per evaluated run RUN/run.json (config, recipe, code
+version), RUN/cpu.json (the CPU seconds of its stages), RUN/code_id and
 RUN/eval/metrics_summary.json (the devkit's summary). A run without the summary is listed as
-pending; a file that is junk or lacks a field the table needs is one line naming it, exit 2.
-The file is replaced atomically, so a reader never sees half a table. It runs in a second and
-needs no model.
+pending with its stages' progress; a file that is junk or lacks a field the table needs is one
+line naming it, exit 2. Runs of another code identity than the first are marked, never mixed in
+silently. The file is replaced atomically, so a reader never sees half a table. It runs in a
+second and needs no model.
 """
 from __future__ import annotations
 
@@ -22,7 +24,6 @@ from pathlib import Path
 from clfbev import io
 from clfbev.config import ModelConfig
 from clfbev.errors import ConfigError, DataError, run_guarded
-from clfbev.run.train_config import BOOKKEEPING, TrainConfig
 
 VERSION = "v1.0-sim"
 # The devkit's five TP errors (nuscenes.eval.detection.constants.TP_METRICS) and their columns.
@@ -31,15 +32,15 @@ TP_COLUMNS = {"trans_err": "mATE", "scale_err": "mASE", "orient_err": "mAOE", "v
 # to name the ones not evaluated.
 DETECTION_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian", "motorcycle",
                      "bicycle", "traffic_cone", "barrier")
-# Train-config fields the recipe sets per variant (clfbev.run.train_config.recipe: the camera
-# variant pastes nothing, as the pasted objects have no pixels): they must agree within a
-# variant, not across.
-PER_VARIANT = ("gt_paste",)
+# The runs' kinds (the name before _sSEED): the variant each trains, and its recipe.
+KINDS = {"lidar": "lidar", "camera": "camera", "full": "full", "mcm": "mcm", "concat": "concat", "fullmd": "full"}
+FUSED = ("full", "mcm", "concat", "fullmd")
 # The fields each file must have for the table (``a.b``: field b of the object in field a).
-SETTINGS_FIELDS = ("scenes", "samples_per_scene", "resolution", "data_seed", "val_fraction", "steps")
+SETTINGS_FIELDS = ("scenes", "samples_per_scene", "resolution", "data_seed", "val_fraction", "camera_steps",
+                   "lidar_steps", "fusion_steps", "lidar_alone_steps", "camera_alone_steps")
 RUN_FIELDS = ("config", "train.max_steps", "train.batch_size")
 SUMMARY_FIELDS = ("mean_ap", "nd_score", "mean_dist_aps", *(f"tp_errors.{k}" for k in TP_COLUMNS))
-PART_FIELDS = {"train": ("seconds", "to_step"), "eval": ("seconds",)}   # per stage, in wall.jsonl
+CPU_FIELDS = ("stages", "cpu_s")
 
 
 # ---------------------------------------------------------------- reading
@@ -75,53 +76,29 @@ def read_settings(out: Path) -> dict:
     return settings
 
 
-def read_parts(path: Path) -> list[dict]:
-    """The lines of RUN/wall.jsonl; a line torn by a kill is skipped."""
-    parts = []
-    if path.exists():
-        for i, line in enumerate(path.read_text().splitlines(), 1):
-            try:
-                part = json.loads(line)
-            except ValueError:
-                continue
-            if not isinstance(part, dict):
-                raise DataError(f"{path}: line {i} is not a JSON object")
-            missing = [k for k in PART_FIELDS.get(part.get("stage"), ()) if k not in part]
-            if missing:
-                raise DataError(f"{path}: line {i} lacks the field {missing[0]!r}")
-            parts.append(part)
-    return parts
+def read_stages(out: Path) -> dict:
+    """{stage: its entry} of OUT/staged.json ({} before the first stage)."""
+    record = read_json(out / "staged.json", ("stages",))
+    return {} if record is None else record["stages"]
 
 
-def config_name(argv: list[str]) -> str:
-    """The --config value of a recorded command line (clfbev train's default: tiny)."""
-    for i, a in enumerate(argv):
-        if a == "--config" and i + 1 < len(argv):
-            return argv[i + 1]
-        if a.startswith("--config="):
-            return a.split("=", 1)[1]
-    return "tiny"
+def kind_of(name: str) -> tuple[str, int]:
+    """(kind, seed) of a run name KIND_sSEED."""
+    kind, _, seed = name.rpartition("_s")
+    return kind, int(seed)
 
 
 def load_run(out: Path, name: str) -> dict:
     """Everything the table needs about one run folder."""
     run = out / name
-    variant, _, seed = name.rpartition("_s")
-    info = read_json(run / "run.json", RUN_FIELDS)
-    parts = read_parts(run / "wall.jsonl")
-    train = [p for p in parts if p.get("stage") == "train"]
-    evals = [p for p in parts if p.get("stage") == "eval"]
+    kind, seed = kind_of(name)
+    summary = read_json(run / "eval" / "metrics_summary.json", SUMMARY_FIELDS)
+    code_id = (run / "code_id").read_text().strip() if (run / "code_id").exists() else None
     return {
-        "name": name, "variant": variant, "seed": int(seed),
-        "summary": read_json(run / "eval" / "metrics_summary.json", SUMMARY_FIELDS),
-        "info": info,
-        "train_s": sum(p["seconds"] for p in train) if train else None,
-        "train_parts": len(train),
-        "eval_s": evals[-1]["seconds"] if evals else None,
-        "step": max((p["to_step"] for p in train), default=0),
-        "threads": sorted({p["threads"] for p in parts if "threads" in p}),
-        "cores": sorted({p["cores"] for p in parts if "cores" in p}),
-        "ends": sorted(p["end"] for p in parts if "end" in p),
+        "name": name, "kind": kind, "variant": KINDS[kind], "seed": seed, "summary": summary,
+        "info": read_json(run / "run.json", RUN_FIELDS),
+        "cpu": read_json(run / "cpu.json", CPU_FIELDS) if summary is not None else None,
+        "code_id": code_id,
     }
 
 
@@ -141,6 +118,14 @@ def split_sizes(data: Path) -> dict[str, tuple[int, int]] | None:
         raise DataError(f"{tables}: splits.json, scene.json and sample.json do not fit together ({e!r})") from None
 
 
+def stages_of(name: str) -> list[str]:
+    """The stages a run trains through, in order (scripts/benchmark.sh's needs_of and the run)."""
+    kind, seed = kind_of(name)
+    if kind in FUSED:
+        return ["cache", f"camstage_s{seed}", f"lidarstage_s{seed}", name]
+    return (["cache"] if kind == "camera" else []) + [name]
+
+
 # ---------------------------------------------------------------- formatting
 
 def num(x, digits: int) -> str:
@@ -150,10 +135,6 @@ def num(x, digits: int) -> str:
 
 def plural(n: int, word: str) -> str:
     return f"{n} {word}" if n == 1 else f"{n} {word}s"
-
-
-def minutes(seconds) -> str:
-    return "" if seconds is None else f"{seconds / 60:.1f}"
 
 
 def table(header: list[str], rows: list[list[str]], right_from: int) -> list[str]:
@@ -173,28 +154,14 @@ def with_defaults(config: dict) -> dict:
     return {**defaults, **config, "loss": {**defaults["loss"], **config.get("loss", {})}}
 
 
-def recipe_of(info: dict) -> dict:
-    """The settings of a run that must agree across the table: all but the seed, the bookkeeping
-    and, when --max-steps sets the length, the unused epoch count."""
-    unused = ("seed", *BOOKKEEPING, *(("epochs",) if info["train"].get("max_steps") else ()))
-    # A field a run predates (image_init) ran at its default, as for the model config.
-    recorded = {**json.loads(json.dumps(dataclasses.asdict(TrainConfig()))), **info["train"]}
-    train = {k: v for k, v in recorded.items() if k not in unused}
-    return {"config_name": config_name(info.get("argv", [])), "config": with_defaults(info["config"]), "train": train}
-
-
-def values_by_variant(started: list[dict], key: str) -> dict:
-    """{value of train field ``key``: [variants with it]}, in table order."""
-    values: dict = {}
-    for r in started:
-        v = r["info"]["train"].get(key)
-        if r["variant"] not in values.setdefault(v, []):
-            values[v].append(r["variant"])
-    return values
-
-
-def describe_train(train: dict) -> str:
-    return ", ".join(f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in train.items())
+def recipe_text(kind: str, settings: dict) -> str:
+    """The run's recipe in a few words."""
+    if kind == "lidar":
+        return f"{settings['lidar_alone_steps']} steps"
+    if kind == "camera":
+        return f"{settings['camera_alone_steps']} steps, cached features"
+    staged = f"staged: {settings['camera_steps']} + {settings['lidar_steps']} + {settings['fusion_steps']} steps"
+    return staged + (", modality dropout" if kind == "fullmd" else "")
 
 
 # ---------------------------------------------------------------- the document
@@ -204,15 +171,16 @@ def render(out: Path, run_names: list[str], now: float | None = None) -> str:
     ``now`` (seconds since the epoch) stamps it."""
     settings = read_settings(out)
     runs = [load_run(out, n) for n in run_names]
-    started = [r for r in runs if r["info"] is not None]
-    recipes = {r["name"]: recipe_of(r["info"]) for r in started}
+    stages = read_stages(out)
+    done = [r for r in runs if r["summary"] is not None]
+    reference = next((r["code_id"] for r in done), None)
     lines = header_lines(out, runs, now)
-    lines += setup_lines(settings, split_sizes(out / "data"), runs, recipes)
-    lines += runs_lines(runs, settings["steps"])
+    lines += setup_lines(out, settings, split_sizes(out / "data"), done, reference)
+    lines += runs_lines(runs, settings, stages, reference)
     lines += per_class_lines(runs)
     lines += seed_spread_lines(runs)
     lines += reproduce_lines(out, settings, run_names)
-    lines += config_lines(recipes)
+    lines += config_lines(done)
     return "\n".join(lines)
 
 
@@ -228,117 +196,71 @@ def header_lines(out: Path, runs: list[dict], now: float | None) -> list[str]:
     ]
 
 
-def setup_lines(settings: dict, sizes: dict | None, runs: list[dict], recipes: dict[str, dict]) -> list[str]:
-    """The Setup section: data, recipe (checked to be one), evaluation, machine, code."""
-    started = [r for r in runs if r["info"] is not None]
-    lines = ["## Setup", "", f"- Data: {data_text(settings, sizes)}."]
-    if recipes:
-        lines += recipe_lines(settings["steps"], sizes, started, recipes)
-    else:
-        lines.append(f"- Recipe: the defaults of `clfbev train --config tiny`; no run has started yet. "
-                     f"Step budget: {settings['steps']} optimizer steps per run.")
-    lines.append("- Evaluation: `clfbev eval` on `sim-val`, the devkit's `DetectionEval` restricted to the classes "
-                 "with ground truth (with lidar points) in the split. The attribute is derived from the predicted "
-                 "speed, not learned, so mAAE follows from the velocity.")
-    lines.append(machine_line(runs))
-    lines += [code_line(runs, started), ""]
-    return lines
-
-
-def data_text(settings: dict, sizes: dict | None) -> str:
-    """The dataset's settings, and the split sizes as the tables have them."""
+def setup_lines(out: Path, settings: dict, sizes: dict | None, done: list[dict], reference: str | None) -> list[str]:
+    """The Setup section: data, recipes, evaluation, CPU, code."""
     data = (f"`simgen make`, urban preset: {settings['scenes']} scenes x {settings['samples_per_scene']} key frames "
             f"at {settings['resolution']}, seed {settings['data_seed']}, val fraction {settings['val_fraction']}")
     if sizes:
         data += "; " + ", ".join(f"`{k}` {plural(sc, 'scene')} ({plural(sa, 'sample')})" for k, (sc, sa) in sizes.items())
-    return data
-
-
-def recipe_lines(steps: int, sizes: dict | None, started: list[dict], recipes: dict[str, dict]) -> list[str]:
-    """The recipe as run.json has it, the step budget, and the runs whose recipe differs."""
-    first_name, first = next(iter(recipes.items()))
-    tr = first["train"]
-    samples = steps * tr["batch_size"] * (started[0]["info"].get("world_size") or 1)
-    epochs = f", {samples / sizes['sim-train'][1]:.1f} epochs of `sim-train`" if sizes and sizes.get("sim-train") else ""
-    shown = {k: v for k, v in tr.items() if k not in PER_VARIANT}
-    per_variant = "; ".join(
-        f"`{k}` " + ", ".join(f"{v} ({', '.join(vs)})" for v, vs in values_by_variant(started, k).items())
-        for k in PER_VARIANT if k in tr)
-    lines = [f"- Recipe: the defaults of `clfbev train --config {first['config_name']}` (model config "
-             f"`{first['config_name']}`), the same for every run of a variant but the seed. From `run.json`: "
-             f"`{describe_train(shown)}`; per variant: {per_variant or 'nothing'}.",
-             f"- Step budget: {steps} optimizer steps per run ({samples} samples{epochs}). No validation while "
-             "training (`--val-split ''`), so nothing is selected on `sim-val`: the evaluated checkpoint is "
-             "`last.pt`, the weights after the last step."]
-    differ = recipe_differences(started, recipes)
-    if differ:
-        lines.append(f"- **Not one recipe:** these runs differ from `{first_name}`: {', '.join(differ)}. "
-                     "Their rows are not comparable; rerun them in a fresh OUT.")
+    data_id = (out / "data_id").read_text().strip() if (out / "data_id").exists() else "not made yet"
+    lines = ["## Setup", "", f"- Data: {data}; identity `{data_id}` (`scripts/data_identity.py`)."]
+    lines.append(
+        f"- Recipes (`clfbev train --config tiny`, batch 2, no validation while training: the evaluated weights are "
+        f"the last step's): `lidar` alone {settings['lidar_alone_steps']} steps; `camera` alone "
+        f"{settings['camera_alone_steps']} steps on the frozen shipped encoder's cached features; the fused variants "
+        f"in stages (`scripts/staged.sh`'s recipe): a camera stage of {settings['camera_steps']} cached steps and a "
+        f"lidar stage of {settings['lidar_steps']} steps per seed, shared by that seed's fused runs, then each "
+        f"variant's fusion stage of {settings['fusion_steps']} steps from both; `fullmd` is `full`'s fusion stage "
+        "with modality dropout (a quarter of the samples without lidar, a quarter without cameras). The step "
+        "budgets give `lidar`, `camera` and the staged `full` about the same CPU-hours; a fused run's CPU counts "
+        "all its stages, the shared ones and the feature cache included.")
+    lines.append("- Evaluation: `clfbev eval` on `sim-val`, the devkit's `DetectionEval` restricted to the classes "
+                 "with ground truth (with lidar points) in the split.")
+    total = sum(r["cpu"]["cpu_s"] for r in done)
+    lines.append(f"- CPU: user + system seconds of each stage's processes (`staged.json`), a run's evaluation "
+                 f"included; {total / 3600:.1f} CPU-hours over the done runs, shared stages counted in each.")
+    lines += [code_line(done, reference), ""]
     return lines
 
 
-def recipe_differences(started: list[dict], recipes: dict[str, dict]) -> list[str]:
-    """```name` (fields)`` of each run whose recipe differs: the per-variant fields against the first
-    run of its variant, the rest against the first run."""
-    first = next(iter(recipes.values()))
-    variant_of = {r["name"]: r["variant"] for r in started}
-    differ = []
-    for name, rec in recipes.items():
-        twin = recipes[next(n for n in recipes if variant_of[n] == variant_of[name])]
-        keys = [k for k in {**first["train"], **rec["train"]}
-                if rec["train"].get(k) != (twin if k in PER_VARIANT else first)["train"].get(k)]
-        keys += ["model config"] if rec["config"] != first["config"] or rec["config_name"] != first["config_name"] else []
-        if keys:
-            differ.append(f"`{name}` ({', '.join(keys)})")
-    return differ
+def code_line(done: list[dict], reference: str | None) -> str:
+    """The code identity of the runs, the other ones named."""
+    if not done:
+        return "- Code: no run evaluated yet."
+    commits = sorted({r["info"].get("code_version", "?") for r in done if r["info"]})
+    other = [r["name"] for r in done if r["code_id"] != reference]
+    line = (f"- Code: identity `{reference}` (the git trees of `clfbev/` and `simgen/`), commit "
+            f"{', '.join(f'`{c}`' for c in commits)} (`run.json`'s code_version where each run started).")
+    if other:
+        line += (f" **Not one code version:** {', '.join(f'`{n}`' for n in other)} ran on other code (marked "
+                 "with \u2020); their rows do not compare with the others'.")
+    return line
 
 
-def machine_line(runs: list[dict]) -> str:
-    """The cores and torch threads the parts recorded, and the wall time in all."""
-    threads = sorted({t for r in runs for t in r["threads"]})
-    cores = sorted({c for r in runs for c in r["cores"]})
-    total = sum((r["train_s"] or 0) + (r["eval_s"] or 0) for r in runs)
-    if cores:   # benchmark.sh records the cores (nproc) and the torch threads (THREADS) of every part
-        per_run = "; ".join(f"`{r['name']}` {', '.join(map(str, r['threads']))}" for r in runs if r["threads"])
-        machine = (f"{', '.join(map(str, cores))} CPU cores (`nproc`); torch threads per run: "
-                   f"{per_run} (fewer than the cores when runs shared them). ")
-    else:       # parts written before the cores were recorded: THREADS was nproc then
-        machine = f"{', '.join(map(str, threads)) or '?'} CPU cores (`nproc`), all used as torch threads. "
-    return (f"- Machine: {machine}"
-            "Wall time: training (every part of a resumed run, an interrupted part included, so steps "
-            "recomputed after a resume count twice; only a part killed together with the script is missing) "
-            f"and evaluation, in minutes; {total / 3600:.1f} h in all.")
+def progress(name: str, stages: dict) -> str:
+    """A pending run's stages: done, started (with its parts) or not started."""
+    parts = []
+    for stage in stages_of(name):
+        entry = stages.get(stage)
+        state = "not started" if entry is None else "done" if entry["done"] else "started"
+        parts.append(f"{stage} {state}")
+    return "pending: " + ", ".join(parts)
 
 
-def code_line(runs: list[dict], started: list[dict]) -> str:
-    """The code version of each run (one when all agree) and the days the parts ended."""
-    days = sorted({e[:10] for r in runs for e in r["ends"]})
-    when = "" if not days else f", run on {days[0]}" if len(days) == 1 else f", run from {days[0]} to {days[-1]}"
-    versions = {r["name"]: r["info"].get("code_version", "?") for r in started}
-    if len(set(versions.values())) == 1:
-        code = f"`{next(iter(versions.values()))}`"
-    else:
-        code = ", ".join(f"`{n}` `{v}`" for n, v in versions.items()) or "?"
-    return f"- Code: {code} (`run.json`'s code_version){when}."
-
-
-def runs_lines(runs: list[dict], steps: int) -> list[str]:
-    """The main table: one row per run, pending ones included."""
+def runs_lines(runs: list[dict], settings: dict, stages: dict, reference: str | None) -> list[str]:
+    """The main table: one row per run, pending ones with their stages' progress."""
     rows = []
     for r in runs:
         s = r["summary"]
-        if s is not None:
-            ran = r["info"]["train"]["max_steps"] if r["info"] else steps
-            metrics = [num(s["mean_ap"], 4), num(s["nd_score"], 4), *(num(s["tp_errors"][k], 3) for k in TP_COLUMNS)]
+        mark = " \u2020" if s is not None and r["code_id"] != reference else ""
+        if s is None:
+            cells = [progress(r["name"], stages), *[""] * (2 + len(TP_COLUMNS))]
         else:
-            ran = f"{r['step']} of {steps}"
-            state = ("pending (not started)" if r["info"] is None and not r["step"] else
-                     "pending (evaluation)" if r["step"] >= steps else "pending")
-            metrics = [state, *[""] * (1 + len(TP_COLUMNS))]
-        train_s = minutes(r["train_s"]) + (f" ({r['train_parts']} parts)" if r["train_parts"] > 1 else "")
-        rows.append([f"`{r['name']}`", r["variant"], str(r["seed"]), str(ran), *metrics, train_s, minutes(r["eval_s"])])
-    header = ["run", "variant", "seed", "steps", "mAP", "NDS", *TP_COLUMNS.values(), "train min", "eval min"]
-    return ["## Runs (sim-val)", "", *table(header, rows, right_from=2), ""]
+            cells = [f"{r['cpu']['cpu_s'] / 3600:.2f}", num(s["mean_ap"], 4), num(s["nd_score"], 4),
+                     *(num(s["tp_errors"][k], 3) for k in TP_COLUMNS)]
+        rows.append([f"`{r['name']}`{mark}", r["variant"], str(r["seed"]), recipe_text(r["kind"], settings), *cells])
+    header = ["run", "variant", "seed", "recipe", "CPU-h", "mAP", "NDS", *TP_COLUMNS.values()]
+    return ["## Runs (sim-val)", "", *table(header, rows, right_from=4), ""]
 
 
 def per_class_lines(runs: list[dict]) -> list[str]:
@@ -363,71 +285,65 @@ def per_class_lines(runs: list[dict]) -> list[str]:
 
 
 def seed_spread_lines(runs: list[dict]) -> list[str]:
-    """Mean ± half the range of mAP and NDS over the seeds of each variant run with several."""
-    by_variant: dict[str, list[dict]] = {}
+    """Mean ± half the range of mAP and NDS over the seeds of each kind of run with several."""
+    by_kind: dict[str, list[dict]] = {}
     for r in runs:
-        by_variant.setdefault(r["variant"], []).append(r)
-    multi = {v: rs for v, rs in by_variant.items() if len(rs) > 1}
+        by_kind.setdefault(r["kind"], []).append(r)
+    multi = {k: rs for k, rs in by_kind.items() if len(rs) > 1}
     if not multi:
         return []
     rows = []
-    for v, rs in multi.items():
+    for kind, rs in multi.items():
         seeds = ", ".join(str(r["seed"]) for r in rs)
         ok = [r["summary"] for r in rs if r["summary"] is not None]
         if len(ok) < len(rs):
-            rows.append([v, seeds, f"pending ({len(ok)} of {len(rs)} seeds done)", "", "", ""])
+            rows.append([kind, seeds, f"pending ({len(ok)} of {len(rs)} seeds done)", "", "", ""])
             continue
         cells = []
         for key in ("mean_ap", "nd_score"):
             m, h = mean_half_range([s[key] for s in ok])
             cells.append(f"{m:.4f} ± {h:.4f}")
         cells += [f"{2 * mean_half_range([s[k] for s in ok])[1]:.4f}" for k in ("mean_ap", "nd_score")]
-        rows.append([v, seeds, *cells])
+        rows.append([kind, seeds, *cells])
     return ["## Seed spread", "",
             "Mean ± half the range over the seeds, and the spread (max - min): the part of a difference "
             "between variants that one seed's luck can explain.", "",
-            *table(["variant", "seeds", "mAP", "NDS", "mAP spread", "NDS spread"], rows, right_from=2), ""]
+            *table(["run", "seeds", "mAP", "NDS", "mAP spread", "NDS spread"], rows, right_from=2), ""]
 
 
 def reproduce_lines(out: Path, settings: dict, run_names: list[str]) -> list[str]:
-    """The commands: the benchmark's invocation with every knob spelled out, and what it runs."""
-    steps = settings["steps"]
-    knobs = (f"SCENES={settings['scenes']} SAMPLES={settings['samples_per_scene']} RES={settings['resolution']} "
-             f"STEPS={steps}" + ("" if str(out) == "benchmark_out" else f" OUT={out}"))
-    data_dir = f"{out}/data"
+    """The commands: the benchmark's invocation and where each stage's command is recorded."""
     return [
         "## Reproduce",
         "",
         "```bash",
-        f"{knobs} bash scripts/benchmark.sh            # all runs; rerun to resume",
-        f"{knobs} bash scripts/benchmark.sh lidar full # or some variants (all their seeds)",
-        "# what it runs, per run V_sS (V the variant, S the seed):",
-        f".venv/bin/simgen make --scenes {settings['scenes']} --samples-per-scene {settings['samples_per_scene']} "
-        f"--resolution {settings['resolution']} --seed {settings['data_seed']} --val-fraction {settings['val_fraction']} "
-        f"--out {data_dir} --quiet",
-        f".venv/bin/clfbev train --data {data_dir} --config tiny --variant V --seed S --out {out}/V_sS "
-        f"--max-steps {steps} --val-split '' --threads $(nproc)    # --resume when {out}/V_sS/last.pt exists",
-        f".venv/bin/clfbev eval --data {data_dir} --ckpt {out}/V_sS/last.pt --split sim-val --out {out}/V_sS/eval",
+        "bash scripts/benchmark.sh                  # every run; rerun to resume",
+        "bash scripts/benchmark.sh lidar full       # or some variants (all their seeds)",
+        "bash scripts/benchmark.sh --list           # each run's state",
         f".venv/bin/python scripts/results_table.py {out} --runs {' '.join(run_names)} --out docs/results.md",
         "```",
+        "",
+        f"Each stage's exact command is its `settings` in `{out}/staged.json`; each run's final weights are "
+        f"`docs/results/RUN/weights.pt.xz` (`clfbev eval --data {out}/data --ckpt docs/results/RUN/weights.pt.xz "
+        "--split sim-val --out EVAL` scores them again without training).",
         "",
     ]
 
 
-def config_lines(recipes: dict[str, dict]) -> list[str]:
-    """The first run's model config, one line per field: the form of a `--config` YAML file."""
-    if not recipes:
+def config_lines(done: list[dict]) -> list[str]:
+    """The first done run's model config, one line per field: the form of a `--config` YAML file."""
+    if not done or done[0]["info"] is None:
         return []
-    first = next(iter(recipes.values()))
-    return [f"<details><summary>The model config <code>{first['config_name']}</code> (from run.json)</summary>",
-            "", "```yaml", *(f"{k}: {json.dumps(v)}" for k, v in first["config"].items()), "```", "",
+    config = with_defaults(done[0]["info"]["config"])
+    return ["<details><summary>The model config <code>tiny</code> (from run.json)</summary>",
+            "", "```yaml", *(f"{k}: {json.dumps(v)}" for k, v in config.items()), "```", "",
             "</details>", ""]
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out", type=Path, help="the benchmark's folder (benchmark_out)")
-    ap.add_argument("--runs", nargs="+", required=True, help="run names, in table order (VARIANT_sSEED)")
+    ap.add_argument("--runs", nargs="+", required=True, help="run names, in table order (KIND_sSEED)")
     ap.add_argument("--out", dest="results", type=Path, default=Path("docs/results.md"), help="markdown to write")
     args = ap.parse_args(argv)
     return run_guarded(lambda: write_table(args.out, args.runs, args.results), prog="results_table")
@@ -435,9 +351,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def write_table(out: Path, run_names: list[str], results: Path) -> None:
     """Render the table of ``run_names`` in ``out`` and replace ``results`` with it."""
-    bad = [n for n in run_names if not n.rpartition("_s")[2].isdigit()]
+    bad = [n for n in run_names if not n.rpartition("_s")[2].isdigit() or n.rpartition("_s")[0] not in KINDS]
     if bad:
-        raise ConfigError(f"--runs: run names must be VARIANT_sSEED, got {', '.join(bad)}")
+        raise ConfigError(f"--runs: run names must be KIND_sSEED with KIND one of {', '.join(KINDS)}, "
+                          f"got {', '.join(bad)}")
     text = render(out, run_names)
     io.write_text(results, text)
     n_done = sum((out / n / "eval" / "metrics_summary.json").exists() for n in run_names)

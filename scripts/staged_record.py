@@ -4,6 +4,7 @@ whether it is done, and the CPU time of every part of it.
     python scripts/staged_record.py state OUT STAGE SETTINGS           # prints pending | started | done
     python scripts/staged_record.py run OUT STAGE SETTINGS -- CMD ...  # runs CMD as a part of STAGE
     python scripts/staged_record.py report OUT                         # CPU hours per stage and in all
+    python scripts/staged_record.py cpu OUT STAGE...                   # those stages' CPU seconds, as JSON
 
 SETTINGS is one string: the stage's command line without the options that do not change its
 result (threads, progress, --resume), and the data's identity. A stage keeps the settings it
@@ -161,6 +162,17 @@ def report(out: Path) -> str:
     return "\n".join(lines)
 
 
+def cpu(out: Path, stages: list[str]) -> dict:
+    """{"stages": {stage: CPU-s}, "cpu_s": their sum} of ``stages``, each of which must be done."""
+    record = load(out)
+    missing = [s for s in stages if not record["stages"].get(s, {}).get("done")]
+    if missing:
+        raise Refused(f"{out / RECORD}: the stage {missing[0]} is not done")
+    save(out, record)      # the totals, from the parts
+    per_stage = {s: record["stages"][s]["cpu_s"] for s in stages}
+    return {"stages": per_stage, "cpu_s": round(sum(per_stage.values()), 3)}
+
+
 def main(argv: list[str]) -> int:
     try:
         if len(argv) == 4 and argv[0] == "state":
@@ -168,11 +180,14 @@ def main(argv: list[str]) -> int:
             return 0
         if len(argv) >= 6 and argv[0] == "run" and argv[4] == "--":
             return run(Path(argv[1]), argv[2], argv[3], argv[5:])
+        if len(argv) >= 3 and argv[0] == "cpu":
+            print(json.dumps(cpu(Path(argv[1]), argv[2:])))
+            return 0
         if len(argv) == 2 and argv[0] == "report":
             print(report(Path(argv[1])))
             return 0
         raise Refused("usage: staged_record.py state OUT STAGE SETTINGS | run OUT STAGE SETTINGS -- CMD ... | "
-                      "report OUT")
+                      "report OUT | cpu OUT STAGE...")
     except Refused as e:
         print(f"staged: {e}", file=sys.stderr)
         return 2

@@ -42,8 +42,8 @@ def _fraction(text):
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"--val-fraction must be a number, got {text!r}") from None
-    if not 0.0 <= v < 1.0:
-        raise argparse.ArgumentTypeError(f"--val-fraction must be in [0, 1), got {v}")
+    if not 0.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"--val-fraction must be in [0, 1], got {v}")
     return v
 
 
@@ -86,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     mk.add_argument("--resolution", type=_resolution, default=None,
                     help="camera resolution WxH; intrinsics are scaled from 1600x900 [preset's]")
     mk.add_argument("--version", default="v1.0-sim", help="version folder name [v1.0-sim]")
-    mk.add_argument("--val-fraction", type=_fraction, default=0.2, help="share of scenes in sim-val [0.2]")
+    mk.add_argument("--val-fraction", type=_fraction, default=0.2, help="share of scenes in sim-val [0.2]; 1 makes a set for evaluation only")
     mk.add_argument("--gl", choices=("egl", "osmesa"), default=None,
                     help="OpenGL platform [egl, or $PYOPENGL_PLATFORM]; osmesa is the slow fallback")
     mk.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -231,8 +231,12 @@ def write_scene(dataroot: Path, records: SceneRecords) -> None:
 
 
 def split_scenes(names: list[str], val_fraction: float) -> dict[str, list[str]]:
-    """The last ceil(val_fraction * n) scenes are ``sim-val`` (at least one when n >= 2)."""
+    """The last ceil(val_fraction * n) scenes are ``sim-val``: with a fraction below 1 at least
+    one and at most n - 1 when n >= 2 (both splits non-empty); with 1 all of them (a set made for
+    evaluation only)."""
     n = len(names)
+    if val_fraction >= 1.0:
+        return {"sim-train": [], "sim-val": list(names)}
     n_val = int(np.ceil(val_fraction * n)) if n >= 2 else 0
     if n >= 2:
         n_val = min(max(n_val, 1), n - 1)

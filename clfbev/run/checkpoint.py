@@ -18,6 +18,8 @@ where asked, that its config and variant are the expected ones; every failure is
 
 from __future__ import annotations
 
+import io as io_module
+import lzma
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -35,6 +37,7 @@ from clfbev.run.train_config import TrainConfig
 
 FORMAT = "clfbev-checkpoint-v1"
 REQUIRED = ("format", "model", "config", "variant", "step", "epoch")
+XZ_MAGIC = b"\xfd7zXZ\x00"      # the xz container's first bytes
 # What a resume reads besides REQUIRED (a checkpoint written for evaluation only may lack them).
 RESUME_FIELDS = ("optimizer", "train", "best_nds", "torch_rng")
 
@@ -46,16 +49,34 @@ def save_checkpoint(path: str | Path, state: dict) -> Path:
 
 
 def read_torch(path: Path) -> object:
-    """``torch.load(path, weights_only=True)`` on the CPU; any failure a CheckpointError naming the file."""
+    """``torch.load(path, weights_only=True)`` on the CPU, of the file or, when it is
+    xz-compressed (:func:`export_weights`), of its contents; any failure a CheckpointError naming the file."""
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
+        with open(path, "rb") as f:
+            compressed = f.read(len(XZ_MAGIC)) == XZ_MAGIC
+        if compressed:
+            return torch.load(io_module.BytesIO(lzma.decompress(path.read_bytes())), map_location="cpu",
+                              weights_only=True)
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         # Any bytes may be in a file the user names, and the unpickler fails on them as it may
         # (KeyError for text, EOFError or RuntimeError when truncated, UnpicklingError, ...).
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise CheckpointError(f"checkpoint {path} is corrupt or not a checkpoint ({first})") from None
+
+
+def export_weights(src: str | Path, out: str | Path) -> dict:
+    """Write the weights of checkpoint ``src`` to ``out`` xz-compressed, with what evaluation
+    reads (config, variant, step, epoch, code version) and without the optimizer's state: the
+    form in which a run's final weights are kept. Returns the checkpoint read."""
+    ckpt = load_checkpoint(src)
+    kept = {k: ckpt[k] for k in (*REQUIRED, "code_version") if k in ckpt}
+    buffer = io_module.BytesIO()
+    torch.save(kept, buffer)
+    io.write_bytes(out, lzma.compress(buffer.getvalue(), preset=9))
+    return ckpt
 
 
 def load_checkpoint(path: str | Path, required: tuple[str, ...] = REQUIRED) -> dict:

@@ -1,10 +1,11 @@
-"""`clfbev train | pretrain | eval | predict | show | robustness`: the detector's command line, and its only
-entry point (the ``clfbev`` script, ``python -m clfbev``, and what torchrun starts on each rank).
+"""The detector's command line (`clfbev train | pretrain | cache-features | experts | export | eval | predict |
+show | robustness`), and its only entry point (the ``clfbev`` script, ``python -m clfbev``, and what torchrun starts on each rank).
 
     clfbev train   --data DIR --config tiny --variant full --out RUN [--epochs N | --max-steps N] [--resume]
     torchrun --nproc_per_node 2 -m clfbev train --data DIR --out RUN ...          (DDP)
     clfbev pretrain --data DIR --config tiny --out RUN [--max-steps N] [--resume]   (camera encoder, dense labels)
     clfbev cache-features --data DIR --config tiny --image-init shipped --out CACHE [--split sim-train]
+    clfbev export  --ckpt RUN/last.pt --out weights.pt.xz                          (weights alone, compressed)
     clfbev eval    --data DIR --ckpt RUN/best.pt [--split sim-val] --out DIR
     clfbev predict --data DIR --ckpt CKPT --out results.json [--split all]
     clfbev show    --data DIR --results results.json [--sample I] --out FILE.png [--attention --ckpt CKPT [--cell X,Y]]
@@ -39,7 +40,7 @@ from clfbev.feature_cache import FeatureCache, encoder_identity, fill_cache
 from clfbev.run import robustness
 from clfbev.run.attention_plot import draw_attention
 from clfbev.run.attention_query import attention_modules
-from clfbev.run.checkpoint import load_model
+from clfbev.run.checkpoint import export_weights, load_model
 from clfbev.run.efficientnet_init import EFFICIENTNET_LITE0
 from clfbev.run.evaluate import EVAL_SCORE_THR, evaluate_model, predict_split, write_results
 from clfbev.run.experts_file import assemble, load_predictor
@@ -142,6 +143,15 @@ def cmd_experts(args) -> None:
     experts = assemble(paths, args.out)
     roles = ", ".join(f"{role} {path}" for role, path in paths.items())
     print(f"wrote the {experts.variant} model ({roles}) to {args.out}; clfbev eval --ckpt {args.out}")
+
+
+def cmd_export(args) -> None:
+    """The weights of --ckpt, xz-compressed, for evaluation only."""
+    check_writable(args.out, is_file=True)
+    ckpt = export_weights(args.ckpt, args.out)
+    size = args.out.stat().st_size
+    print(f"wrote the {ckpt['variant']} weights of {args.ckpt} (step {ckpt['step']}) to {args.out} "
+          f"({size / 1e6:.2f} MB); clfbev eval --ckpt {args.out}")
 
 
 def cmd_eval(args) -> None:
@@ -376,6 +386,17 @@ def _add_experts(sub) -> None:
     p.set_defaults(fn=cmd_experts)
 
 
+def _add_export(sub) -> None:
+    p = sub.add_parser("export", help="a checkpoint's weights alone, xz-compressed, for evaluation",
+                       description="Write the model weights of a training checkpoint with its config and variant "
+                       "(what `clfbev eval`, `predict` and `robustness` read), without the optimizer's state, "
+                       "xz-compressed: a tiny model's final weights in 0.5-4 MB. Every command that takes --ckpt reads "
+                       "the file as it is. It cannot be resumed from.")
+    p.add_argument("--ckpt", required=True, type=Path, help="a training checkpoint (last.pt or best.pt)")
+    p.add_argument("--out", required=True, type=Path, help="the file to write (e.g. weights.pt.xz)")
+    p.set_defaults(fn=cmd_export)
+
+
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="official nuScenes DetectionEval of a checkpoint on a split",
                        description="Predict a split, write results.json (nuScenes submission format) and run the "
@@ -446,8 +467,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="clfbev", description="CL-FusionBEV: camera + lidar BEV fusion detector "
                                  "(train, evaluate with the official nuScenes metrics, predict, visualise).")
     sub = ap.add_subparsers(dest="command", required=True)
-    for add in (_add_train, _add_pretrain, _add_cache_features, _add_experts, _add_eval, _add_robustness, _add_predict,
-                _add_show):
+    for add in (_add_train, _add_pretrain, _add_cache_features, _add_experts, _add_export, _add_eval, _add_robustness,
+                _add_predict, _add_show):
         add(sub)
     return ap
 

@@ -70,22 +70,27 @@ def test_a_lidar_model_starts_as_the_checkpoint(lidar_state, tmp_path):
     assert all(torch.equal(v, lidar_state["model"][k]) for k, v in model.items())
 
 
-def test_the_still_head_loads_where_both_have_it_and_starts_seeded_where_the_run_lacks_it(lidar_state, tmp_path):
+def test_the_still_head_loads_where_both_have_it_and_starts_seeded_where_the_run_lacks_it(tmp_path):
     with_still = dataclasses.replace(MICRO, loss=dataclasses.replace(MICRO.loss, attribute=1.0))
-    path = save_checkpoint(tmp_path / "lidar.pt", lidar_state)
+    without = dataclasses.replace(MICRO, loss=dataclasses.replace(MICRO.loss, attribute=0.0))
+    torch.manual_seed(3)
+    plain_state = {"model": CLFusionBEV(without, "lidar").state_dict(), "config": without.to_dict(),
+                   "variant": "lidar", "step": 40, "epoch": 1}
+    assert "head.conv_still.weight" not in plain_state["model"]
+    path = save_checkpoint(tmp_path / "lidar.pt", plain_state)
     model = _start("lidar", path, with_still).state_dict()
     scratch = start_state(with_still, "lidar", TrainConfig(seed=5), CPU, None, tmp_path / "x.pt").model.state_dict()
     for k, v in model.items():
-        assert torch.equal(v, scratch[k] if k.startswith("head.conv_still.") else lidar_state["model"][k]), k
+        assert torch.equal(v, scratch[k] if k.startswith("head.conv_still.") else plain_state["model"][k]), k
     assert "head.conv_still.weight" in model
 
     # A run with the still head: it loads; into a model without one it is left out.
     torch.manual_seed(4)
-    still_state = {**lidar_state, "config": with_still.to_dict(), "model": CLFusionBEV(with_still, "lidar").state_dict()}
+    still_state = {**plain_state, "config": with_still.to_dict(), "model": CLFusionBEV(with_still, "lidar").state_dict()}
     still_path = save_checkpoint(tmp_path / "still.pt", still_state)
     again = _start("lidar", still_path, with_still).state_dict()
     assert all(torch.equal(v, still_state["model"][k]) for k, v in again.items())
-    plain = _start("lidar", still_path).state_dict()
+    plain = _start("lidar", still_path, without).state_dict()
     assert "head.conv_still.weight" not in plain and torch.equal(plain["head.conv_cls.weight"],
                                                                  still_state["model"]["head.conv_cls.weight"])
 

@@ -2,8 +2,8 @@
 
 The table is fed fake but well-formed run folders: the devkit's metrics_summary.json (same keys
 as DetectionMetrics.serialize, NaN TP errors included), run.json as clfbev train writes it, and
-the wall.jsonl parts that benchmark.sh appends. benchmark.sh is run from a copy in an empty
-folder, so that what it creates (or must not create) is visible.
+the cpu.json, code_id and staged.json that benchmark.sh writes. benchmark.sh is run from a copy
+in an empty folder, so that what it creates (or must not create) is visible.
 """
 from __future__ import annotations
 
@@ -19,9 +19,11 @@ import pytest
 from conftest import script_module
 
 ROOT = Path(__file__).resolve().parents[2]
-RUNS = ["lidar_s0", "full_s0", "concat_s0", "mcm_s0", "camera_s0", "lidar_s1", "full_s1"]
+RUNS = ["lidar_s0", "full_s0", "concat_s0", "mcm_s0", "camera_s0", "fullmd_s0", "lidar_s1", "full_s1"]
 CLASSES = ["car", "bus", "pedestrian", "traffic_cone"]   # the devkit's order, restricted
 TP = ("trans_err", "scale_err", "orient_err", "vel_err", "attr_err")
+SETTINGS = {"scenes": 3, "samples_per_scene": 3, "resolution": "352x198", "data_seed": 1, "val_fraction": 0.2,
+            "camera_steps": 30, "lidar_steps": 10, "fusion_steps": 5, "lidar_alone_steps": 30, "camera_alone_steps": 90}
 
 
 rt = script_module("results_table")
@@ -29,10 +31,8 @@ rt = script_module("results_table")
 
 # ---------------------------------------------------------------- fake benchmark folders
 
-TRAIN = {"train_split": "sim-train", "val_split": "", "version": "v1.0-sim", "seed": 0, "lr": 0.001,
-         "weight_decay": 0.01, "warmup_frac": 0.05, "min_lr_ratio": 0.01, "grad_clip": 10.0, "batch_size": 2,
-         "epochs": 20, "max_steps": 10, "augment": True, "modality_dropout": 0.0, "gt_paste": 8, "workers": 0,
-         "ckpt_minutes": 10.0, "save_every_steps": 0}
+TRAIN = {"train_split": "sim-train", "val_split": "", "version": "v1.0-sim", "seed": 0, "lr": 0.002,
+         "batch_size": 2, "epochs": 8, "max_steps": 10}
 
 
 def summary(mean_ap: float, nds: float, aps: dict, tp: dict) -> dict:
@@ -55,8 +55,8 @@ def bench(tmp_path) -> Path:
     out = tmp_path / "benchmark_out"
     tables = out / "data" / "v1.0-sim"
     tables.mkdir(parents=True)
-    (out / "benchmark.json").write_text(json.dumps({"scenes": 3, "samples_per_scene": 3, "resolution": "352x198",
-                                                    "data_seed": 1, "val_fraction": 0.2, "steps": 10}))
+    (out / "benchmark.json").write_text(json.dumps(SETTINGS))
+    (out / "data_id").write_text("d4t4\n")
     scenes = [{"token": f"sc{i}", "name": f"scene-{i:04d}"} for i in range(3)]
     (tables / "scene.json").write_text(json.dumps(scenes))
     (tables / "sample.json").write_text(json.dumps([{"token": f"s{i}{j}", "scene_token": f"sc{i}"}
@@ -66,23 +66,22 @@ def bench(tmp_path) -> Path:
     return out
 
 
-def add_run(out: Path, name: str, metrics: dict | None = None, parts=((0, 10, 60),), eval_s: int | None = 30,
-            train: dict | None = None, code: str = "abc1234", config: dict | None = None) -> Path:
+def add_run(out: Path, name: str, metrics: dict | None = None, cpu: dict | None = None, code_id: str = "c0de",
+            commit: str = "abc1234") -> Path:
+    """A run folder as benchmark.sh leaves it (evaluated when ``metrics`` is given)."""
     run = out / name
     run.mkdir(parents=True)
-    variant, _, seed = name.rpartition("_s")
+    kind, _, seed = name.rpartition("_s")
     (run / "run.json").write_text(json.dumps({
-        "config": {"vfe_ch": 32, "image_size": [128, 352], **(config or {})}, "variant": variant,
-        "train": {**TRAIN, "seed": int(seed), **(train or {})}, "world_size": 1, "code_version": code,
-        "argv": ["/somewhere/clfbev", "train", "--config", "tiny", "--variant", variant], "resumed_at_step": 0}))
-    lines = [json.dumps({"stage": "train", "from_step": a, "to_step": b, "seconds": s, "exit": 0, "threads": 2,
-                         "end": "2026-12-01T10:00:00Z"}) for a, b, s in parts]
+        "config": {"vfe_ch": 32, "image_size": [128, 352]}, "variant": rt.KINDS[kind],
+        "train": {**TRAIN, "seed": int(seed)}, "world_size": 1, "code_version": commit,
+        "argv": ["/somewhere/clfbev", "train", "--config", "tiny"], "resumed_at_step": 0}))
     if metrics is not None:
         (run / "eval").mkdir()
         (run / "eval" / "metrics_summary.json").write_text(json.dumps(metrics))   # NaN as the devkit writes it
-        if eval_s is not None:
-            lines.append(json.dumps({"stage": "eval", "seconds": eval_s, "threads": 2, "end": "2026-12-01T11:00:00Z"}))
-    (run / "wall.jsonl").write_text("".join(ln + "\n" for ln in lines) + '{"stage": "tra')   # a torn last line
+        cpu = cpu or {name: 3600.0}
+        (run / "cpu.json").write_text(json.dumps({"stages": cpu, "cpu_s": sum(cpu.values())}))
+        (run / "code_id").write_text(code_id + "\n")
     return run
 
 
@@ -107,98 +106,67 @@ def render(bench: Path, runs=RUNS) -> str:
 
 # ---------------------------------------------------------------- the table
 
-def test_table_has_the_devkit_numbers_wall_time_and_setup(bench):
+def test_table_has_the_devkit_numbers_cpu_hours_and_setup(bench):
     aps = {"car": 0.5123, "bus": 0.0, "pedestrian": 0.25, "traffic_cone": 0.0449}
-    add_run(bench, "lidar_s0", summary(0.2018, 0.3107, aps, tp_errors(0.4)), parts=((0, 4, 100), (4, 10, 140)))
+    add_run(bench, "lidar_s0", summary(0.2018, 0.3107, aps, tp_errors(0.4)), cpu={"lidar_s0": 4000, "eval_lidar_s0": 500})
+    add_run(bench, "full_s0", summary(0.25, 0.35, aps, tp_errors(0.4)),
+            cpu={"cache": 300, "camstage_s0": 1200, "lidarstage_s0": 1500, "full_s0": 1200, "eval_full_s0": 300})
     md = render(bench)
 
-    cells = row(section(md, "Runs"), "`lidar_s0`")
-    assert cells[:5] == ["lidar", "0", "10", "0.2018", "0.3107"]
-    assert cells[5:10] == ["0.400", "0.500", "0.600", "0.700", "0.800"]          # mATE .. mAAE
-    assert cells[10:] == ["4.0 (2 parts)", "0.5"]                                 # 240 s train, 30 s eval
+    runs = section(md, "Runs")
+    cells = row(runs, "`lidar_s0`")
+    assert cells[:4] == ["lidar", "0", "30 steps", "1.25"]                     # 4500 CPU-s
+    assert cells[4:6] == ["0.2018", "0.3107"]
+    assert cells[6:] == ["0.400", "0.500", "0.600", "0.700", "0.800"]          # mATE .. mAAE
+    assert row(runs, "`full_s0`")[2:4] == ["staged: 30 + 10 + 5 steps", "1.25"]
     per_class = section(md, "Per-class AP")
     assert row(per_class, "run") == CLASSES                                       # the devkit's evaluated classes
     assert row(per_class, "`lidar_s0`") == ["0.512", "0.000", "0.250", "0.045"]
     assert "truck, trailer, construction_vehicle, motorcycle, bicycle, barrier" in per_class
     setup = section(md, "Setup")
-    assert "3 scenes x 3 key frames at 352x198, seed 1" in setup
+    assert "3 scenes x 3 key frames at 352x198, seed 1" in setup and "identity `d4t4`" in setup
     assert "`sim-train` 2 scenes (6 samples), `sim-val` 1 scene (3 samples)" in setup
-    assert "--config tiny" in setup and "lr=0.001" in setup and "per variant: `gt_paste` 8 (lidar)" in setup
-    assert "seed=" not in setup
-    assert "10 optimizer steps per run (20 samples, 3.3 epochs" in setup
-    assert "`abc1234`" in setup and "2 CPU cores (`nproc`), all used" in setup       # parts without "cores"
-    assert "1 of 7 runs done" in md
-    reproduce = section(md, "Reproduce")
-    assert "SCENES=3 SAMPLES=3 RES=352x198 STEPS=10" in reproduce and "--max-steps 10 --val-split ''" in reproduce
+    assert "`lidar` alone 30 steps" in setup and "`camera` alone 90 steps" in setup
+    assert "2.5 CPU-hours over the done runs" in setup
+    assert "identity `c0de`" in setup and "`abc1234`" in setup and "Not one code version" not in setup
+    assert "2 of 8 runs done" in md
     assert "/somewhere" not in md                                                # no recorded absolute path
 
 
-def test_pending_runs_are_listed_with_their_progress(bench):
+def test_pending_runs_are_listed_with_their_stages_progress(bench):
     add_run(bench, "lidar_s0", summary(0.2, 0.3, {"car": 0.4}, tp_errors(0.5)))
-    add_run(bench, "full_s0", parts=((0, 3, 50), (3, 7, 60)))                    # interrupted at step 7
-    add_run(bench, "concat_s0", parts=((0, 10, 70),))                             # trained, not evaluated
+    add_run(bench, "full_s0")                                                     # trained, not evaluated
+    (bench / "staged.json").write_text(json.dumps({"format": "clfbev-staged-v1", "stages": {
+        "cache": {"done": True}, "camstage_s0": {"done": True}, "lidarstage_s0": {"done": False}}}))
     md = render(bench)
     runs = section(md, "Runs")
-    assert row(runs, "`full_s0`")[:4] == ["full", "0", "7 of 10", "pending"]
-    assert row(runs, "`full_s0`")[-2:] == ["1.8 (2 parts)", ""]
-    assert row(runs, "`concat_s0`")[2:4] == ["10 of 10", "pending (evaluation)"]
-    for name in ("mcm_s0", "camera_s0", "lidar_s1", "full_s1"):
-        assert row(runs, f"`{name}`")[2:4] == ["0 of 10", "pending (not started)"]
+    assert row(runs, "`full_s0`")[3] == ("pending: cache done, camstage_s0 done, lidarstage_s0 started, "
+                                         "full_s0 not started")
+    assert row(runs, "`camera_s0`")[3] == "pending: cache done, camera_s0 not started"
+    assert row(runs, "`lidar_s1`")[3] == "pending: lidar_s1 not started"
     assert row(section(md, "Per-class AP"), "`mcm_s0`")[0] == "pending"
-    assert "1 of 7 runs done" in md
+    assert "1 of 8 runs done" in md
 
 
 def test_seed_spread_is_mean_half_range_and_range(bench):
     add_run(bench, "lidar_s0", summary(0.10, 0.20, {"car": 0.3}, tp_errors(0.5)))
     add_run(bench, "lidar_s1", summary(0.14, 0.23, {"car": 0.35}, tp_errors(0.5)))
     add_run(bench, "full_s0", summary(0.09, 0.19, {"car": 0.3}, tp_errors(0.5)))
+    add_run(bench, "fullmd_s0", summary(0.09, 0.19, {"car": 0.3}, tp_errors(0.5)))
     spread = section(render(bench), "Seed spread")
     assert row(spread, "lidar") == ["0, 1", "0.1200 ± 0.0200", "0.2150 ± 0.0150", "0.0400", "0.0300"]
     assert row(spread, "full")[:2] == ["0, 1", "pending (1 of 2 seeds done)"]
-    assert "concat" not in spread                                                # one seed: no spread
+    assert "concat" not in spread and "fullmd" not in spread                     # one seed: no spread
 
 
-def test_the_cores_and_each_runs_threads(bench):
+def test_a_run_of_other_code_is_marked(bench):
     add_run(bench, "lidar_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)))
-    add_run(bench, "full_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)))
-    for name, threads in (("lidar_s0", 1), ("full_s0", 2)):
-        (bench / name / "wall.jsonl").write_text(json.dumps(
-            {"stage": "train", "from_step": 0, "to_step": 10, "seconds": 60, "exit": 0, "threads": threads,
-             "cores": 2, "end": "2026-12-01T10:00:00Z"}) + "\n")
-    setup = section(render(bench), "Setup")
-    assert "2 CPU cores (`nproc`); torch threads per run: `lidar_s0` 1; `full_s0` 2" in setup
-
-
-def test_a_run_with_another_recipe_is_flagged(bench):
-    add_run(bench, "lidar_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)))
-    add_run(bench, "full_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"lr": 0.002}, code="def5678")
-    # Bookkeeping, and the epoch count that --max-steps overrides, do not change a result.
-    add_run(bench, "concat_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)),
-            train={"ckpt_minutes": 3.0, "save_every_steps": 5, "workers": 2, "epochs": 12})
-    add_run(bench, "mcm_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"gt_paste_fade": 0.2})
-    # The recipe pastes nothing for the camera variant: that is one recipe, per variant. But the
-    # second seed of a variant must paste as its first.
-    add_run(bench, "camera_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"gt_paste": 0})
-    add_run(bench, "lidar_s1", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), train={"gt_paste": 0, "seed": 1})
-    setup = section(render(bench), "Setup")
-    flagged = setup.split("**Not one recipe:**")[1].split("\n")[0]
-    assert "`full_s0` (lr)" in flagged and "`mcm_s0` (gt_paste_fade)" in flagged   # a field only one run has
-    assert "concat_s0" not in flagged and "lidar_s0`:" in flagged
-    assert "camera_s0" not in flagged and "`lidar_s1` (gt_paste)" in flagged
-    assert "per variant: `gt_paste` 8 (lidar, full, concat, mcm), 0 (camera, lidar)" in setup
-    assert "`full_s0` `def5678`" in setup
-
-
-def test_a_field_a_run_predates_counts_at_its_default(bench):
-    """A run recorded before a config field existed ran with the field's default: a later run
-    with that default is the same recipe, one with another value is not."""
-    add_run(bench, "lidar_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)))
-    add_run(bench, "lidar_s1", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)),
-            config={"velocity_tower": 0, "loss": {"semantic": 0.0}})
-    assert "Not one recipe" not in section(render(bench), "Setup")
-    add_run(bench, "full_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), config={"velocity_tower": 32})
-    flagged = section(render(bench), "Setup").split("**Not one recipe:**")[1].split("\n")[0]
-    assert "`full_s0` (model config)" in flagged and "lidar_s1" not in flagged
+    add_run(bench, "full_s0", summary(0.1, 0.2, {"car": 0.3}, tp_errors(0.5)), code_id="0ther", commit="def5678")
+    md = render(bench)
+    assert row(section(md, "Runs"), "`full_s0` \u2020")[0] == "full"
+    assert row(section(md, "Runs"), "`lidar_s0`")[0] == "lidar"
+    setup = section(md, "Setup")
+    assert "**Not one code version:** `full_s0`" in setup and "`abc1234`, `def5678`" in setup
 
 
 def test_the_write_is_atomic(bench, monkeypatch):
@@ -224,13 +192,6 @@ def test_a_missing_benchmark_is_one_line(tmp_path, capsys):
     assert "benchmark.json is missing" in capsys.readouterr().err and not (tmp_path / "r.md").exists()
 
 
-def test_the_bookkeeping_fields_are_the_train_configs():
-    """One list of the fields that do not change a result, shared with a resume."""
-    from clfbev.run.train_config import BOOKKEEPING
-    assert rt.BOOKKEEPING is BOOKKEEPING
-    assert {"ckpt_minutes", "save_every_steps", "workers"} <= BOOKKEEPING
-
-
 def test_the_detection_classes_are_the_devkits():
     from nuscenes.eval.detection.constants import DETECTION_NAMES
     assert list(rt.DETECTION_CLASSES) == list(DETECTION_NAMES)
@@ -243,8 +204,8 @@ def test_the_detection_classes_are_the_devkits():
     ("lidar_s0/run.json", "{\"config\": {}, \"train\": {\"max_steps\": 10}}", "run.json: lacks the field 'train.batch_size'"),
     ("lidar_s0/eval/metrics_summary.json", "{\"mean_ap\": 0.1}", "metrics_summary.json: lacks the field 'nd_score'"),
     ("lidar_s0/eval/metrics_summary.json", "[1, 2]", "metrics_summary.json: lacks the field 'mean_ap'"),
-    ("lidar_s0/wall.jsonl", "{\"stage\": \"train\", \"seconds\": 3}\n", "wall.jsonl: line 1 lacks the field 'to_step'"),
-    ("lidar_s0/wall.jsonl", "[]\n", "wall.jsonl: line 1 is not a JSON object"),
+    ("lidar_s0/cpu.json", "{\"stages\": {}}", "cpu.json: lacks the field 'cpu_s'"),
+    ("staged.json", "{}", "staged.json: lacks the field 'stages'"),
     ("data/v1.0-sim/sample.json", "[{\"token\": \"s00\"}]", "do not fit together"),
 ])
 def test_a_junk_file_is_one_line_naming_it(bench, capsys, file, text, expected):
@@ -258,20 +219,29 @@ def test_a_junk_file_is_one_line_naming_it(bench, capsys, file, text, expected):
 
 
 def test_a_bad_run_name_is_one_line(bench, capsys):
-    assert rt.main([str(bench), "--runs", "lidar_s0", "full", "--out", str(bench.parent / "r.md")]) == 2
-    err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and "VARIANT_sSEED, got full" in err
+    for bad in ("full", "fulll_s0"):
+        assert rt.main([str(bench), "--runs", "lidar_s0", bad, "--out", str(bench.parent / "r.md")]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and f"got {bad}" in err
 
 
 # ---------------------------------------------------------------- benchmark.sh
 
-def bench_sh(tmp_path: Path, *args: str, **env: str) -> subprocess.CompletedProcess:
+def bench_sh(tmp_path: Path, *args: str, git: bool = False, **env: str) -> subprocess.CompletedProcess:
     """Run a copy of benchmark.sh from an empty repository folder (it works from its parent),
-    with ``env`` added to the environment."""
+    with ``env`` added to the environment; with ``git``, the folder is a git repository whose
+    clfbev/ and simgen/ hold one file each."""
     repo = tmp_path / "repo"
     if not repo.exists():
         (repo / "scripts").mkdir(parents=True)
         shutil.copy(ROOT / "scripts" / "benchmark.sh", repo / "scripts" / "benchmark.sh")
+        if git:
+            for package in ("clfbev", "simgen"):
+                (repo / package).mkdir()
+                (repo / package / "__init__.py").write_text(f"# {package}\n")
+            for cmd in (["init", "-q"], ["add", "clfbev", "simgen", "scripts"],
+                        ["-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "code"]):
+                subprocess.run(["git", *cmd], cwd=repo, check=True, capture_output=True)
     return subprocess.run(["bash", str(repo / "scripts" / "benchmark.sh"), *args], capture_output=True, text=True,
                           timeout=30, env={**os.environ, **env})
 
@@ -294,27 +264,39 @@ def test_the_runs_their_order_and_the_variants_clfbev_knows(tmp_path):
     assert every.stdout.split() == [w for r in RUNS for w in (r, "pending")]
     assert bench_sh(tmp_path, "--list").stdout == every.stdout                  # the default: all five
     some = bench_sh(tmp_path, "--list", "full", "lidar").stdout.split()[::2]
-    assert some == ["lidar_s0", "full_s0", "lidar_s1", "full_s1"]               # the default order kept
+    assert some == ["lidar_s0", "full_s0", "fullmd_s0", "lidar_s1", "full_s1"]  # the default order kept
     runs = bench_sh(tmp_path, "--list", "full_s1", "camera").stdout.split()[::2]
     assert runs == ["camera_s0", "full_s1"]                                     # runs by name, too
     assert sorted(p.name for p in (tmp_path / "repo").iterdir()) == ["scripts"]
+    assert set(rt.KINDS) == {r.rpartition("_s")[0] for r in RUNS}               # the table knows every run
 
 
-def test_a_recorded_run_counts_only_with_the_same_settings(tmp_path):
+def test_a_recorded_run_counts_only_with_the_same_settings_data_and_code(tmp_path):
     """docs/results/RUN holds an evaluated run's record: --list calls it recorded when its
-    benchmark.json is this benchmark's settings (and its data_id OUT's data, once made),
-    pending otherwise; the OUT folder wins."""
-    bench_sh(tmp_path, "--list")                                    # makes the repo copy
+    benchmark.json is this benchmark's settings, its code_id this checkout's code (and its data_id
+    OUT's data, once made), pending otherwise; the OUT folder wins."""
+    bench_sh(tmp_path, "--list", git=True)                          # makes the repo copy
     repo = tmp_path / "repo"
+    trees = subprocess.run(["git", "rev-parse", "HEAD:clfbev", "HEAD:simgen"], cwd=repo, capture_output=True,
+                           text=True, check=True).stdout
+    code = subprocess.run(["sha1sum"], input=trees, capture_output=True, text=True).stdout[:12]
     settings = ('{"scenes": 40, "samples_per_scene": 20, "resolution": "704x396", "data_seed": 1, '
-                '"val_fraction": 0.2, "steps": 1200}')
-    for name, written in (("lidar_s0", settings), ("full_s0", settings.replace("1200", "600"))):
+                '"val_fraction": 0.2, "camera_steps": 3600, "lidar_steps": 1200, "fusion_steps": 600, '
+                '"lidar_alone_steps": 3600, "camera_alone_steps": 12000}')
+    for name, written, code_id in (("lidar_s0", settings, code), ("full_s0", settings.replace("600,", "700,"), code),
+                                   ("camera_s0", settings, "0ther")):
         rec = repo / "docs" / "results" / name
         rec.mkdir(parents=True)
         (rec / "benchmark.json").write_text(written + "\n")
         (rec / "metrics_summary.json").write_text("{}")
+        (rec / "code_id").write_text(code_id + "\n")
     state = dict(zip(*[iter(bench_sh(tmp_path, "--list").stdout.split())] * 2))
-    assert state["lidar_s0"] == "recorded" and state["full_s0"] == "pending" and state["lidar_s1"] == "pending"
+    assert state["lidar_s0"] == "recorded" and state["lidar_s1"] == "pending"
+    assert state["full_s0"] == "pending" and state["camera_s0"] == "pending"    # other settings, other code
+    # An uncommitted change to the code makes it other code.
+    (repo / "simgen" / "__init__.py").write_text("# changed\n")
+    assert bench_sh(tmp_path, "--list", "lidar_s0").stdout.split() == ["lidar_s0", "pending"]
+    subprocess.run(["git", "checkout", "-q", "simgen"], cwd=repo, check=True)
     # Once OUT's data exists, its identity must match the record's too: another layout's
     # record is not restored.
     (repo / "docs" / "results" / "lidar_s0" / "data_id").write_text("a1\n")

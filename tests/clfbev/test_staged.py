@@ -144,6 +144,11 @@ def test_a_part_records_its_cpu_time_and_exit_and_a_killed_one_keeps_its_time_so
     with pytest.raises(rec.Refused, match=r"the x stage in .* other settings \(--a 1 -> 2\)"):
         rec.state(out, "x", "--a 2")
 
+    # The CPU of a set of done stages (a benchmark run's), and a refusal for one not done.
+    assert rec.cpu(out, ["x"]) == {"stages": {"x": r["stages"]["x"]["cpu_s"]}, "cpu_s": r["stages"]["x"]["cpu_s"]}
+    with pytest.raises(rec.Refused, match="the stage z is not done"):
+        rec.cpu(out, ["x", "z"])
+
     # The recorder killed with SIGKILL mid-part: the part keeps the CPU time of its last rewrite.
     code = (f"import sys; sys.path.insert(0, {str(ROOT / 'scripts')!r}); import staged_record as r; "
             f"r.INTERIM_S = 0.2; sys.exit(r.main(sys.argv[1:]))")

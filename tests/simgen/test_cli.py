@@ -88,9 +88,20 @@ def test_out_of_range_preset_value(tmp_path):
     (("--scenes", "1", "--resolution", "0x0"), "--resolution"),
     (("--scenes", "1", "--preset", "no_such_preset"), "no_such_preset"),
     (("--scenes", "1", "--workers", "0"), "--workers"),
+    (("--scenes", "1", "--val-fraction", "1.5"), "--val-fraction must be in [0, 1]"),
 ])
 def test_bad_arguments(tmp_path, args, needle):
     assert needle in _bad(tmp_path, *args)
+
+
+def test_the_splits_and_a_set_for_evaluation_only():
+    from simgen.writer import split_scenes
+    names = [f"scene-{i:04d}" for i in range(5)]
+    assert split_scenes(names, 0.2) == {"sim-train": names[:4], "sim-val": names[4:]}
+    assert split_scenes(names, 0.0) == {"sim-train": names[:4], "sim-val": names[4:]}     # one val scene at least
+    assert split_scenes(names, 0.99) == {"sim-train": names[:1], "sim-val": names[1:]}    # one train scene at least
+    assert split_scenes(names, 1.0) == {"sim-train": [], "sim-val": names}
+    assert split_scenes(names[:1], 1.0) == {"sim-train": [], "sim-val": names[:1]}
 
 
 def test_unwritable_out(tmp_path):
