@@ -90,15 +90,20 @@ def _devkit_counts_within_fov(nusc, sample_token: str, fov_deg: float) -> dict[s
     return {b.token: int(points_in_box(b, pts).sum()) for b in boxes}
 
 
-def _oracle_dataroot(src, dst, unseen: set[str]):
-    """A copy of ``src``'s tables in which the unseen annotations have no points (so the devkit
-    leaves them out of its GT), its sensor folders linked."""
+def _linked_copy(src, dst, *ignore: str):
+    """A copy of ``src``'s tables (but the files ``ignore``) with its sensor folders linked."""
     dst.mkdir()
     for entry in src.iterdir():
         if entry.name != "v1.0-sim":
             (dst / entry.name).symlink_to(entry)
-    shutil.copytree(src / "v1.0-sim", dst / "v1.0-sim")
-    table = dst / "v1.0-sim" / "sample_annotation.json"
+    shutil.copytree(src / "v1.0-sim", dst / "v1.0-sim", ignore=shutil.ignore_patterns(*ignore))
+    return dst
+
+
+def _oracle_dataroot(src, dst, unseen: set[str]):
+    """A linked copy of ``src`` in which the unseen annotations have no points (so the devkit
+    leaves them out of its GT)."""
+    table = _linked_copy(src, dst) / "v1.0-sim" / "sample_annotation.json"
     anns = json.loads(table.read_text())
     for ann in anns:
         if ann["token"] in unseen:
@@ -134,12 +139,8 @@ def test_oracle_gt_is_the_gt_the_condition_still_sees(tiny_dataset, tmp_path):
 
 
 def _with_record(src, dst, record: dict):
-    dst.mkdir()
-    for entry in src.iterdir():
-        if entry.name != "v1.0-sim":
-            (dst / entry.name).symlink_to(entry)
-    shutil.copytree(src / "v1.0-sim", dst / "v1.0-sim", ignore=shutil.ignore_patterns("degradation.json"))
-    (dst / "v1.0-sim" / "degradation.json").write_text(json.dumps(record))
+    """A linked copy of ``src`` with the degradation record ``record``."""
+    (_linked_copy(src, dst, "degradation.json") / "v1.0-sim" / "degradation.json").write_text(json.dumps(record))
     return dst
 
 
