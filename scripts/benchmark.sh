@@ -134,6 +134,7 @@ echo "benchmark: data $DATA ($SCENES scenes x $SAMPLES key frames at $RES, seed 
   --val-fraction "$VAL_FRACTION" --out "$DATA" --quiet
 data_id=$($PY scripts/data_identity.py "$DATA")
 echo "$data_id" > "$OUT/.data_id.tmp" && mv "$OUT/.data_id.tmp" "$OUT/data_id"
+[ -f "$OUT/scored.json" ] || $PY scripts/scored_boxes.py "$DATA" --out "$OUT/scored.json"   # what each AP rests on
 
 # 2. The stages. stage_args STAGE sets argv to its clfbev command (the dataroot and the threads
 # left out); needs_of STAGE lists the stages it starts from. Settings = the command and the data.

@@ -3,8 +3,8 @@
 
     python scripts/results_table.py benchmark_out --runs lidar_s0 full_s0 ... --out docs/results.md
 
-Reads OUT/benchmark.json (the benchmark's settings), the dataset's splits, OUT/staged.json (the
-stages' progress, for the pending runs) and per evaluated run RUN/run.json (config, recipe, code
+Reads OUT/benchmark.json (the benchmark's settings), the dataset's splits, OUT/scored.json (the
+boxes scored per class and split), OUT/staged.json (the stages' progress, for the pending runs) and per evaluated run RUN/run.json (config, recipe, code
 version), RUN/cpu.json (the CPU seconds of its stages), RUN/code_id and
 RUN/eval/metrics_summary.json (the devkit's summary). A run without the summary is listed as
 pending with its stages' progress; a file that is junk or lacks a field the table needs is one
@@ -204,6 +204,11 @@ def setup_lines(out: Path, settings: dict, sizes: dict | None, done: list[dict],
         data += "; " + ", ".join(f"`{k}` {plural(sc, 'scene')} ({plural(sa, 'sample')})" for k, (sc, sa) in sizes.items())
     data_id = (out / "data_id").read_text().strip() if (out / "data_id").exists() else "not made yet"
     lines = ["## Setup", "", f"- Data: {data}; identity `{data_id}` (`scripts/data_identity.py`)."]
+    scored = read_json(out / "scored.json")
+    if scored:
+        per_split = [f"`{split}` " + ", ".join(f"{c} {n}" for c, n in counts.items()) for split, counts in scored.items()]
+        lines.append("- Boxes the devkit scores (a lidar point, within the class range; `scripts/scored_boxes.py`): "
+                     + "; ".join(per_split) + ".")
     lines.append(
         f"- Recipes (`clfbev train --config tiny`, batch 2, no validation while training: the evaluated weights are "
         f"the last step's): `lidar` alone {settings['lidar_alone_steps']} steps; `camera` alone "

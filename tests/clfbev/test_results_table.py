@@ -131,6 +131,53 @@ def test_table_has_the_devkit_numbers_cpu_hours_and_setup(bench):
     assert "identity `c0de`" in setup and "`abc1234`" in setup and "Not one code version" not in setup
     assert "2 of 8 runs done" in md
     assert "/somewhere" not in md                                                # no recorded absolute path
+    (bench / "scored.json").write_text(json.dumps({"sim-train": {"car": 120, "pedestrian": 80},
+                                                   "sim-val": {"car": 30, "pedestrian": 20}}))
+    assert "`sim-train` car 120, pedestrian 80; `sim-val` car 30, pedestrian 20." in section(render(bench), "Setup")
+
+
+def test_the_scored_boxes_are_the_devkits(tiny_dataset):
+    """scripts/scored_boxes.py counts, per class, the GT boxes the devkit's DetectionEval keeps."""
+    from nuscenes import NuScenes
+    from nuscenes.eval.common.config import config_factory
+    from nuscenes.eval.common.loaders import add_center_dist, filter_eval_boxes
+
+    counts = script_module("scored_boxes").scored_boxes(tiny_dataset)
+    nusc = NuScenes("v1.0-sim", str(tiny_dataset), verbose=False)
+    cfg = config_factory("detection_cvpr_2019")
+    for split in ("sim-train", "sim-val"):
+        splits = json.loads((tiny_dataset / "v1.0-sim" / "splits.json").read_text())
+        scenes = {s["token"] for s in nusc.scene if s["name"] in splits[split]}
+        gt = add_center_dist(nusc, _gt(nusc, scenes))
+        kept = filter_eval_boxes(nusc, gt, cfg.class_range)
+        expected = {}
+        for box in kept.all:
+            expected[box.detection_name] = expected.get(box.detection_name, 0) + 1
+        assert counts[split] == {c: expected[c] for c in cfg.class_range if c in expected} and sum(expected.values()) > 5
+
+
+def _gt(nusc, scenes):
+    """The devkit's EvalBoxes of the GT of the samples of ``scenes``, as its load_gt builds them
+    (which accepts only the official split names)."""
+    from nuscenes.eval.common.data_classes import EvalBoxes
+    from nuscenes.eval.detection.data_classes import DetectionBox
+    from nuscenes.eval.detection.utils import category_to_detection_name
+    boxes = EvalBoxes()
+    for sample in nusc.sample:
+        if sample["scene_token"] not in scenes:
+            continue
+        found = []
+        for token in sample["anns"]:
+            a = nusc.get("sample_annotation", token)
+            name = category_to_detection_name(a["category_name"])
+            if name is None:
+                continue
+            found.append(DetectionBox(sample_token=sample["token"], translation=a["translation"], size=a["size"],
+                                      rotation=a["rotation"], velocity=nusc.box_velocity(token)[:2],
+                                      num_pts=a["num_lidar_pts"] + a["num_radar_pts"], detection_name=name,
+                                      detection_score=-1.0, attribute_name=""))
+        boxes.add_boxes(sample["token"], found)
+    return boxes
 
 
 def test_pending_runs_are_listed_with_their_stages_progress(bench):
