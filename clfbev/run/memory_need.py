@@ -26,7 +26,7 @@ import torch
 from clfbev.camera_encoder import CameraEncoder
 from clfbev.config import ModelConfig
 from clfbev.errors import ConfigError
-from clfbev.model import count_parameters
+from clfbev.model import CLFusionBEV, count_parameters
 
 N_CAMERAS = 6
 PROBE_SCALE = 4             # the probe image is about the config's H / 4 x W / 4 ...
@@ -118,17 +118,21 @@ def describe_camera(cfg: ModelConfig) -> str:
     return f"{encoder} on {H}x{W} images"
 
 
-def check_memory(cfg: ModelConfig, model: torch.nn.Module, batch_size: int, frozen: bool, device: torch.device,
-                 what: str) -> None:
-    """ConfigError when a training step clearly cannot fit (:func:`step_lower_bound` above what is available)."""
+def check_memory(cfg: ModelConfig, variant: str, batch_size: int, frozen: bool, device: torch.device) -> None:
+    """ConfigError when a training step of ``variant`` clearly cannot fit (:func:`step_lower_bound`
+    above what is available). Leaves torch's random state as it found it."""
     free = available_bytes(device)
     if free is None:
         return
-    need = step_lower_bound(cfg, model, batch_size, frozen, half=device.type == "cuda")
+    with torch.random.fork_rng(devices=[]):
+        model = CLFusionBEV(cfg, variant)
+        if frozen and model.camera_encoder is not None:
+            model.camera_encoder.freeze_image_features()
+        need = step_lower_bound(cfg, model, batch_size, frozen, half=device.type == "cuda")
     if need > free:
         where = f"the GPU {device}" if device.type == "cuda" else f"this machine ({os.cpu_count()} CPUs)"
         raise ConfigError(
-            f"{what} at --batch-size {batch_size} needs at least {need / 2**30:.1f} GiB per process (its image "
-            f"encoder's activations for {batch_size * N_CAMERAS} images and its weights with their gradients and "
-            f"AdamW state), and {where} has {free / 2**30:.1f} GiB available: use a smaller --batch-size, "
-            "--image-freeze, or a machine with more memory")
+            f"the {variant} model ({describe_camera(cfg)}) at --batch-size {batch_size} needs at least "
+            f"{need / 2**30:.1f} GiB per process (its image encoder's activations for {batch_size * N_CAMERAS} "
+            f"images and its weights with their gradients and AdamW state), and {where} has {free / 2**30:.1f} GiB "
+            "available: use a smaller --batch-size, --image-freeze, or a machine with more memory")

@@ -52,7 +52,7 @@ from clfbev.run.evaluate import evaluate_model
 from clfbev.run.image_init import init_camera_encoder
 from clfbev.run.lidar_init import init_from_lidar_run
 from clfbev.run.loop import Loop, LoopState, Task, adamw, open_records, restore_state, run_epochs, run_length
-from clfbev.run.memory_need import check_memory, describe_camera
+from clfbev.run.memory_need import check_memory
 from clfbev.run.torchvision_init import TORCHVISION
 from clfbev.run.train_config import TrainConfig, check_resumable
 from clfbev.supervision.targets import Targets, TrainingCollate, training_loss
@@ -150,8 +150,7 @@ def train(data: str | Path, out: str | Path, cfg: ModelConfig, variant: str, tc:
     rank, world, device = _setup_distributed()
     check_sensor_settings(tc, variant)
     ckpt = resume_checkpoint(run / "last.pt", cfg, variant, tc, resume)
-    check_memory(cfg, CLFusionBEV(cfg, variant), tc.batch_size, tc.image_freeze, device,
-                 f"the {variant} model ({describe_camera(cfg)})")
+    check_memory(cfg, variant, tc.batch_size, tc.image_freeze, device)
     training = load_training_data(data, cfg, variant, tc, rank, world)
     state = start_state(cfg, variant, tc, device, ckpt, run / "last.pt")
     if tc.feature_cache:

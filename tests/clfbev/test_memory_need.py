@@ -39,6 +39,21 @@ def test_the_probe_scales_to_the_full_size_count(monkeypatch):
     assert image_activation_bytes(MICRO, False) > 0
 
 
+def test_the_check_leaves_the_random_state_and_counts_frozen_weights_once(monkeypatch):
+    cfg = tiny()
+    monkeypatch.setattr(memory_need, "available_bytes", lambda device: 1 << 50)
+    torch.manual_seed(7)
+    memory_need.check_memory(cfg, "camera", 2, True, torch.device("cpu"))
+    after = torch.rand(3)
+    torch.manual_seed(7)
+    assert torch.equal(after, torch.rand(3))
+    model = memory_need.CLFusionBEV(cfg, "camera")
+    trained = memory_need.state_bytes(model)
+    model.camera_encoder.freeze_image_features()
+    frozen_params = sum(p.numel() for p in model.parameters() if not p.requires_grad)
+    assert frozen_params > 0 and memory_need.state_bytes(model) == trained - 12 * frozen_params
+
+
 def test_a_step_no_machine_holds_is_refused_before_anything_is_written(tiny_dataset, tmp_path):
     run = tmp_path / "run"
     proc = clfbev("train", "--data", tiny_dataset, "--config", "tiny", "--variant", "camera", "--out", run,
