@@ -117,9 +117,10 @@ def set_family(root: Path, version: str) -> tuple[str | None, float]:
 
 
 def corruption_family(c: Corruption) -> tuple[str | None, float]:
-    """A load-time corruption's curve: its name (with its sensor), at its severity; the ones
-    without a severity are bars."""
-    if c.name == "lidar_missing":
+    """A load-time corruption's curve: its name (with its sensor), at its severity; the one
+    without a severity (``lidar_missing``) and the one whose clean value is not 0 (``fov``: 360
+    degrees) are bars."""
+    if c.name in ("lidar_missing", "fov"):
         return None, 0.0
     return (f"{c.name}:{c.sensor}" if c.sensor else c.name), float(c.severity)
 

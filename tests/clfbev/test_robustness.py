@@ -221,9 +221,9 @@ def test_a_set_is_a_point_of_a_curve_only_when_it_changes_one_thing(tiny_dataset
         shutil.copytree(tiny_dataset / "v1.0-sim", root / "v1.0-sim", ignore=shutil.ignore_patterns("degradation.json"))
         (root / "v1.0-sim" / "degradation.json").write_text(json.dumps({"settings": settings, "weather": weather}))
         sets.append((name, root))
-    corruptions = [parse("beam_missing:16"), parse("lidar_missing"), parse("misalign:CAM_FRONT:2")]
+    corruptions = [parse("beam_missing:16"), parse("lidar_missing"), parse("misalign:CAM_FRONT:2"), parse("fov:120")]
     family = {c.name: (c.family, c.severity) for c in conditions_of(sets, corruptions, "v1.0-sim")}
     assert family == {"clean": (None, 0.0), "occlusion": (None, 0.0), "fog2": ("fog", 2.0), "rain25": ("rain", 25.0),
                       "snow1": ("snow", 1.0), "night": (None, 0.0), "fog1_rain10": (None, 0.0),
                       "beam_missing:16": ("beam_missing", 16.0), "lidar_missing": (None, 0.0),
-                      "misalign:CAM_FRONT:2": ("misalign:CAM_FRONT", 2.0)}
+                      "misalign:CAM_FRONT:2": ("misalign:CAM_FRONT", 2.0), "fov:120": (None, 0.0)}
