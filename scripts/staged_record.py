@@ -25,6 +25,7 @@ staged.json (written atomically, :mod:`clfbev.io`): ``{"format", "stages": {STAG
 """
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import resource
@@ -32,6 +33,7 @@ import signal
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -117,15 +119,38 @@ def _proc_cpu(pid: int) -> tuple[float, float]:
     return (utime + cutime) / tick, (stime + cstime) / tick
 
 
+@contextmanager
+def locked(out: Path):
+    """An exclusive lock for a read-modify-write of OUT's record: processes that record other
+    stages of one OUT at the same time (two benchmark runs side by side) never undo each other's
+    writes. Its own file: staged.sh holds OUT/.lock for a whole recipe."""
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / ".record.lock", "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def put(out: Path, stage: str, entry: dict) -> None:
+    """Write ``stage``'s entry into OUT's record as it is now on disk."""
+    with locked(out):
+        record = load(out)
+        record["stages"][stage] = entry
+        save(out, record)
+
+
 def run(out: Path, stage: str, settings: str, command: list[str]) -> int:
     """Run ``command`` as a new part of ``stage``, recording it; returns its exit code."""
-    record = load(out)
-    check_settings(record, stage, settings, out)
-    entry = record["stages"].setdefault(stage, {"settings": settings, "done": False, "parts": []})
-    part = {"started": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"), "wall_s": 0.0, "user_s": 0.0,
-            "sys_s": 0.0, "exit": None, "ended": False}
-    entry["parts"].append(part)
-    save(out, record)
+    with locked(out):
+        record = load(out)
+        check_settings(record, stage, settings, out)
+        entry = record["stages"].setdefault(stage, {"settings": settings, "done": False, "parts": []})
+        part = {"started": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"), "wall_s": 0.0, "user_s": 0.0,
+                "sys_s": 0.0, "exit": None, "ended": False}
+        entry["parts"].append(part)
+        save(out, record)
     # Ctrl-C reaches the command too (one process group); the record waits for its end. A Python
     # handler, unlike SIG_IGN, is not inherited by the command.
     handler = signal.signal(signal.SIGINT, lambda *_: None)
@@ -139,22 +164,23 @@ def run(out: Path, stage: str, settings: str, command: list[str]) -> int:
             except subprocess.TimeoutExpired:
                 part["user_s"], part["sys_s"] = (round(v, 3) for v in _proc_cpu(proc.pid))
                 part["wall_s"] = round(time.monotonic() - t0, 3)
-                save(out, record)
+                put(out, stage, entry)
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
     finally:
         signal.signal(signal.SIGINT, handler)
     part.update(wall_s=round(time.monotonic() - t0, 3), user_s=round(after.ru_utime - before.ru_utime, 3),
                 sys_s=round(after.ru_stime - before.ru_stime, 3), exit=proc.returncode, ended=True)
     entry["done"] = entry["done"] or proc.returncode == 0
-    save(out, record)
+    put(out, stage, entry)
     return proc.returncode if proc.returncode >= 0 else 128 - proc.returncode
 
 
 def report(out: Path) -> str:
     """One line per stage (state, parts, CPU hours) and the total."""
-    record = load(out)
-    if record["stages"]:
-        save(out, record)      # the totals, from the parts
+    with locked(out):
+        record = load(out)
+        if record["stages"]:
+            save(out, record)      # the totals, from the parts
     lines = [f"{name}: {'done' if s['done'] else 'started'}, {len(s['parts'])} part(s), {s['cpu_s']:.0f} CPU-s "
              f"({s['cpu_s'] / 3600:.3f} CPU-hours)" for name, s in record["stages"].items()]
     total = record.get("cpu_s", 0.0)
@@ -168,8 +194,7 @@ def cpu(out: Path, stages: list[str]) -> dict:
     missing = [s for s in stages if not record["stages"].get(s, {}).get("done")]
     if missing:
         raise Refused(f"{out / RECORD}: the stage {missing[0]} is not done")
-    save(out, record)      # the totals, from the parts
-    per_stage = {s: record["stages"][s]["cpu_s"] for s in stages}
+    per_stage = {s: round(sum(p["user_s"] + p["sys_s"] for p in record["stages"][s]["parts"]), 3) for s in stages}
     return {"stages": per_stage, "cpu_s": round(sum(per_stage.values()), 3)}
 
 

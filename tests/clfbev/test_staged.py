@@ -167,6 +167,23 @@ def test_a_part_records_its_cpu_time_and_exit_and_a_killed_one_keeps_its_time_so
     assert rec.state(out, "y", "") == "started"
 
 
+def test_two_processes_recording_other_stages_of_one_out_keep_both(tmp_path):
+    """Two benchmark runs side by side record their stages in one staged.json: each write merges
+    into the file as it is, under a lock, so neither stage's parts are lost."""
+    out = tmp_path / "out"
+    burn = "import time\nt = time.process_time()\nwhile time.process_time() - t < 1.0: pass"
+    code = (f"import sys; sys.path.insert(0, {str(ROOT / 'scripts')!r}); import staged_record as r; "
+            f"r.INTERIM_S = 0.02; sys.exit(r.main(sys.argv[1:]))")
+    procs = [subprocess.Popen([sys.executable, "-c", code, "run", str(out), stage, f"--{stage} 1", "--",
+                               sys.executable, "-c", burn]) for stage in ("a", "b")]
+    assert [p.wait(timeout=120) for p in procs] == [0, 0]
+    stages = record(out)["stages"]
+    assert set(stages) == {"a", "b"}
+    for entry in stages.values():
+        part = entry["parts"][0]
+        assert entry["done"] and len(entry["parts"]) == 1 and part["user_s"] + part["sys_s"] >= 0.9, part
+
+
 class Killed(Exception):
     """Where a kill would stop the run."""
 
