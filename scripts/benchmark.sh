@@ -192,10 +192,14 @@ table() {
 keep_record() {  # run: its small files and its weights into RECORD/run, each replaced whole
   local rec=$RECORD/$1 f
   mkdir -p "$rec"
-  for f in "$OUT/benchmark.json" "$OUT/data_id" "$OUT/$1/code_id" "$OUT/$1/run.json" "$OUT/$1/cpu.json" \
+  for f in "$OUT/benchmark.json" "$OUT/data_id" "$OUT/$1/code_id" "$OUT/$1/cpu.json" \
            "$OUT/$1/eval/metrics_summary.json" "$OUT/$1/weights.pt.xz"; do
     cp "$f" "$rec/.$(basename "$f").tmp" && mv "$rec/.$(basename "$f").tmp" "$rec/$(basename "$f")"
   done
+  # run.json's argv[0] is the file the interpreter ran, a path of this machine: the record names
+  # the program instead (written atomically by clfbev.io).
+  "$PY" -c 'import json, sys; from clfbev import io; r = json.loads(open(sys.argv[1]).read()); r["argv"][0] = "clfbev"
+io.write_json(sys.argv[2], r)' "$OUT/$1/run.json" "$rec/run.json"
 }
 keep_stage_weights() {  # run: the weights of a fused run's camera and lidar stages (its per-sensor
   # experts, clfbev experts) into RECORD/STAGE, once per seed
