@@ -2,7 +2,7 @@
 # The robustness suite in one command: the benchmark's models on a held-out world in every
 # condition, beside each condition's sensor-visibility oracle, and the report
 # (OUT/robustness.{json,md,png}).
-#   bash scripts/robustness.sh            # 8 held-out scenes x 10 key frames; 16 paired sets, 10 corruptions
+#   bash scripts/robustness.sh            # 8 held-out scenes x 10 key frames; 15 paired sets (the clean one among them), 10 corruptions
 #   bash scripts/robustness.sh --quick    # 3 scenes x 5 key frames; clean, fog 3, snowfall 2.5, night, 3 corruptions
 # The models are scripts/benchmark.sh's runs lidar_s0, camera_s0, concat_s0, mcm_s0, full_s0,
 # fullmd_s0 (full trained with modality dropout), and full_s0 with its camera and lidar stages as
@@ -12,7 +12,9 @@
 # The world is one the models never saw: urban seed 2 (the benchmark's is seed 1, the demo's 0),
 # every scene in sim-val. Every set pairs with the clean one (same world, other sensors).
 # Everything resumes: a set made is not made again, an evaluated cell (model x condition) is
-# reused while its checkpoint and set are unchanged (clfbev robustness).
+# reused while its checkpoint and set are unchanged (clfbev robustness). Each set and each
+# evaluation is recorded with its CPU time in OUT/staged.json (scripts/staged_record.py), so the
+# suite's cost is known however many times it was interrupted and continued.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 QUICK=0
@@ -35,14 +37,15 @@ else
 fi
 RES=${RES:-704x396}
 SEED=${SEED:-2}
-OUT=${OUT:-robustness_out$([ $QUICK = 1 ] && echo _quick)}
+SUFFIX=""; [ $QUICK = 0 ] || SUFFIX=_quick
+OUT=${OUT:-robustness_out$SUFFIX}
 SETS=${SETS:-$OUT/sets}
 BENCH=${BENCH:-benchmark_out}
 RECORD=${RECORD:-docs/results}
 MODELS=(lidar_s0 camera_s0 concat_s0 mcm_s0 full_s0 fullmd_s0)
 bash scripts/install.sh
+rec() { .venv/bin/python scripts/staged_record.py "$@"; }
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
-mkdir -p "$OUT" "$SETS"
 
 # 1. The models: an evaluated benchmark run's last.pt, else its record's weights.
 weights_of() {  # run -> the file to evaluate, or nothing
@@ -57,15 +60,20 @@ done
 fused=$(weights_of full_s0)
 cam=$( [ -f "$BENCH/camstage_s0/last.pt" ] && echo "$BENCH/camstage_s0/last.pt" || echo "$RECORD/camstage_s0/weights.pt.xz")
 lid=$( [ -f "$BENCH/lidarstage_s0/last.pt" ] && echo "$BENCH/lidarstage_s0/last.pt" || echo "$RECORD/lidarstage_s0/weights.pt.xz")
+experts=0
 if [ -n "$fused" ] && [ -f "$cam" ] && [ -f "$lid" ]; then
-  .venv/bin/clfbev experts --fused "$fused" --camera "$cam" --lidar "$lid" --out "$OUT/experts_s0.pt"
-  ckpts+=(--ckpt "experts_s0=$OUT/experts_s0.pt")
+  experts=1
 else
   echo "robustness: experts_s0 left out (full_s0 and its stages' weights are not all there)"
 fi
-if [ ${#ckpts[@]} -eq 0 ]; then
+if [ ${#ckpts[@]} -eq 0 ] && [ $experts = 0 ]; then
   echo "robustness: no model to test: run scripts/benchmark.sh first (or restore its records in $RECORD)" >&2
   exit 2
+fi
+mkdir -p "$OUT" "$SETS"
+if [ $experts = 1 ]; then
+  .venv/bin/clfbev experts --fused "$fused" --camera "$cam" --lidar "$lid" --out "$OUT/experts_s0.pt"
+  ckpts+=(--ckpt "experts_s0=$OUT/experts_s0.pt")
 fi
 t0=$(date +%s)
 
@@ -75,8 +83,9 @@ for spec in "${SETS_ARGS[@]}"; do
   name=${spec%%:*}
   read -ra flags <<< "${spec#*:}"
   echo "robustness: set $name"
-  .venv/bin/simgen make --preset urban --scenes "$SCENES" --samples-per-scene "$SAMPLES" --resolution "$RES" \
-    --seed "$SEED" --val-fraction 1 --out "$SETS/$name" --quiet "${flags[@]}"
+  make=(.venv/bin/simgen make --preset urban --scenes "$SCENES" --samples-per-scene "$SAMPLES" --resolution "$RES"
+        --seed "$SEED" --val-fraction 1 --out "$SETS/$name" --quiet "${flags[@]}")
+  [ "$(rec state "$OUT" "set_$name" "${make[*]:1}")" = done ] || rec run "$OUT" "set_$name" "${make[*]:1}" -- "${make[@]}"
   sets+=(--set "$name=$SETS/$name")
 done
 t1=$(date +%s)
@@ -84,8 +93,11 @@ t1=$(date +%s)
 # 3. Every model and the oracle on every condition through the official DetectionEval.
 corrupt=()
 for c in "${CORRUPT[@]}"; do corrupt+=(--corrupt "$c"); done
-.venv/bin/clfbev robustness "${ckpts[@]}" "${sets[@]}" "${corrupt[@]}" --out "$OUT"
+# One stage for every evaluation in OUT: a rerun with other models or conditions adds a part
+# (the cells it reuses cost nothing), so the stage's CPU time is what the whole report cost.
+rec run "$OUT" evaluate "clfbev robustness" -- .venv/bin/clfbev robustness "${ckpts[@]}" "${sets[@]}" "${corrupt[@]}" --out "$OUT"
 t2=$(date +%s)
 echo "{\"sets_s\": $((t1 - t0)), \"evaluate_s\": $((t2 - t1)), \"total_s\": $((t2 - t0))}" > "$OUT/.timing.json.tmp"
 mv "$OUT/.timing.json.tmp" "$OUT/timing.json"
+rec report "$OUT"
 echo "robustness: wrote $OUT/robustness.md ($((t2 - t0)) s)"

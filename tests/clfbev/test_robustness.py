@@ -3,9 +3,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -227,3 +229,20 @@ def test_a_set_is_a_point_of_a_curve_only_when_it_changes_one_thing(tiny_dataset
                       "snow1": ("snow", 1.0), "night": (None, 0.0), "fog1_rain10": (None, 0.0),
                       "beam_missing:16": ("beam_missing", 16.0), "lidar_missing": (None, 0.0),
                       "misalign:CAM_FRONT:2": ("misalign:CAM_FRONT", 2.0), "fov:120": (None, 0.0)}
+
+
+@pytest.mark.parametrize("args", [(), ("--quick",)])
+def test_the_suite_without_models_is_one_line_exit_2_and_writes_nothing(tmp_path, args):
+    """Both sizes of scripts/robustness.sh reach their check of the models (a full run once ended
+    silently with exit 1 before it) and refuse, writing nothing, when no model is there."""
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "OUT": str(tmp_path / "out"), "BENCH": str(tmp_path / "bench"),
+           "RECORD": str(tmp_path / "records")}
+    proc = subprocess.run(["bash", str(root / "scripts" / "robustness.sh"), *args], capture_output=True, text=True,
+                          env=env, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        f"robustness: no model to test: run scripts/benchmark.sh first (or restore its records in {tmp_path / 'records'})"]
+    left_out = [line.split()[1] for line in proc.stdout.splitlines() if line.startswith("robustness:")]
+    assert left_out == ["lidar_s0", "camera_s0", "concat_s0", "mcm_s0", "full_s0", "fullmd_s0", "experts_s0"]
+    assert list(tmp_path.iterdir()) == []
