@@ -4,6 +4,7 @@
 # (OUT/robustness.{json,md,png}).
 #   bash scripts/robustness.sh            # 8 held-out scenes x 10 key frames; 15 paired sets (the clean one among them), 10 corruptions
 #   bash scripts/robustness.sh --quick    # 3 scenes x 5 key frames; clean, fog 3, snowfall 2.5, night, 3 corruptions
+#   JOBS=2 bash scripts/robustness.sh     # the models split over 2 processes of one thread each
 # The models are scripts/benchmark.sh's runs lidar_s0, camera_s0, concat_s0, mcm_s0, full_s0,
 # fullmd_s0 (full trained with modality dropout), and full_s0 with its camera and lidar stages as
 # per-sensor experts (clfbev experts): each from BENCH's run folder where it was evaluated there,
@@ -93,9 +94,38 @@ t1=$(date +%s)
 # 3. Every model and the oracle on every condition through the official DetectionEval.
 corrupt=()
 for c in "${CORRUPT[@]}"; do corrupt+=(--corrupt "$c"); done
-# One stage for every evaluation in OUT: a rerun with other models or conditions adds a part
-# (the cells it reuses cost nothing), so the stage's CPU time is what the whole report cost.
-rec run "$OUT" evaluate "clfbev robustness" -- .venv/bin/clfbev robustness "${ckpts[@]}" "${sets[@]}" "${corrupt[@]}" --out "$OUT"
+evaluate() {  # STAGE CKPT_ARGS... : one clfbev robustness process, recorded as STAGE
+  local stage=$1; shift
+  rec run "$OUT" "$stage" "clfbev robustness" -- .venv/bin/clfbev robustness "$@" "${sets[@]}" "${corrupt[@]}" --out "$OUT"
+}
+JOBS=${JOBS:-1}
+if [ "$JOBS" -gt 1 ]; then
+  # Cells are independent, so the models are dealt round-robin to JOBS one-thread processes. The
+  # first computes the oracle's cells before its models; the others start once those are all
+  # there, so that no oracle cell is computed twice.
+  groups=()     # per job, the indices of its models' NAME=CKPT in ckpts
+  for ((i = 1; i < ${#ckpts[@]}; i += 2)); do
+    groups[(i / 2) % JOBS]+="$i "
+  done
+  oracle_cells=()   # a cell is done when its cell.json is there (clfbev robustness writes it last)
+  for spec in "${SETS_ARGS[@]}"; do oracle_cells+=("$OUT/oracle/${spec%%:*}/cell.json"); done
+  for c in "${CORRUPT[@]}"; do oracle_cells+=("$OUT/oracle/${c//:/_}/cell.json"); done
+  oracle_done() { local f; for f in "${oracle_cells[@]}"; do [ -f "$f" ] || return 1; done; }
+  pids=()
+  for ((j = 0; j < ${#groups[@]}; j++)); do
+    args=()
+    for i in ${groups[j]}; do args+=(--ckpt "${ckpts[i]}"); done
+    OMP_NUM_THREADS=1 evaluate "evaluate_job$((j + 1))" "${args[@]}" > "$OUT/job$((j + 1)).log" 2>&1 &
+    pids+=($!)
+    echo "robustness: job $((j + 1)) ($OUT/job$((j + 1)).log): ${args[*]}"
+    while [ $j = 0 ] && kill -0 "${pids[0]}" 2> /dev/null && ! oracle_done; do sleep 5; done
+  done
+  for ((j = 0; j < ${#pids[@]}; j++)); do
+    wait "${pids[j]}" || { echo "robustness: job $((j + 1)) failed; see $OUT/job$((j + 1)).log" >&2; exit 1; }
+  done
+fi
+# The whole report: with JOBS, every cell is there already and is only read.
+evaluate evaluate "${ckpts[@]}"
 t2=$(date +%s)
 echo "{\"sets_s\": $((t1 - t0)), \"evaluate_s\": $((t2 - t1)), \"total_s\": $((t2 - t0))}" > "$OUT/.timing.json.tmp"
 mv "$OUT/.timing.json.tmp" "$OUT/timing.json"
