@@ -107,7 +107,10 @@ if [ "$JOBS" -gt 1 ]; then
   for ((i = 1; i < ${#ckpts[@]}; i += 2)); do
     groups[(i / 2) % JOBS]+="$i "
   done
-  oracle_cells=()   # a cell is done when its cell.json is there (clfbev robustness writes it last)
+  # A cell is done when its cell.json is there (clfbev robustness writes it last), in the folder
+  # clfbev.run.robustness._cell_dir names (':' as '_'). Were the names to drift, the wait would
+  # only last until job 1 ends: slower, never wrong.
+  oracle_cells=()
   for spec in "${SETS_ARGS[@]}"; do oracle_cells+=("$OUT/oracle/${spec%%:*}/cell.json"); done
   for c in "${CORRUPT[@]}"; do oracle_cells+=("$OUT/oracle/${c//:/_}/cell.json"); done
   oracle_done() { local f; for f in "${oracle_cells[@]}"; do [ -f "$f" ] || return 1; done; }
