@@ -9,9 +9,8 @@
 # encoder's cached features CAMERA_STEPS, the lidar LIDAR_STEPS, the fusion FUSION_STEPS from both)
 # and evaluates its experts file (the fused model, with the camera and lidar stages for a lost
 # sensor). RECIPE=scratch trains `full` from scratch with the tiny config's recipe (`clfbev train
-# --config tiny`, see clfbev/run/train_config.py: recipe; EPOCHS only shortens it). Timed on one
-# fresh clone of 223039a, 2 idle cores: staged 30.2 min, car AP 0.479, pedestrian 0.787, mAP
-# 0.188, NDS 0.258; scratch 26.2 min, car 0.316, pedestrian 0.673, mAP 0.129, NDS 0.272.
+# --config tiny`, see clfbev/run/train_config.py: recipe; EPOCHS only shortens it). Both recipes'
+# measured times and figures: the README.
 # Every stage resumes: rerunning after an interruption continues where it stopped.
 set -euo pipefail
 cd "$(dirname "$0")/.."
